@@ -1,0 +1,1 @@
+"""The annotation tool: tracking (ICP) and the viser browser app."""

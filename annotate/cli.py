@@ -1,0 +1,26 @@
+"""``annotate``: serve the browser annotation tool, or track headless with ``--track``."""
+
+from __future__ import annotations
+
+import argparse
+
+from sequences.errors import run_cli
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="annotate", description="Annotate an RGB-D sequence with oriented boxes in the browser, or track headless.")
+    parser.add_argument("sequence", nargs="?", help="sequence folder (default: the bundled sample)")
+    parser.add_argument("--annotation", help="annotation document (default: SEQ/annotation.yaml)")
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
+    parser.add_argument("--track", action="store_true", help="no server: refine the manual frames, track every frame, write the document")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    raise SystemExit("annotate: not implemented yet")
+
+
+def entry() -> None:
+    raise SystemExit(run_cli(main))

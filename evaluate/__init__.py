@@ -1,0 +1,1 @@
+"""Shared geometry and metrics, dataset readers, the method interface, and evaluation reports."""

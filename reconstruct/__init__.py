@@ -1,0 +1,1 @@
+"""From posed frames to ground truth: carving, meshing, smoothing, tight box, masks, REDWOOD75 export."""

@@ -1,0 +1,195 @@
+"""The annotation document (``SEQ/annotation.yaml``): load, validate, save atomically.
+
+Poses map object to camera coordinates: p_cam = R p_obj + t, with ``position`` = t (the box
+centre in the OpenCV camera frame, metres) and ``orientation`` = R as a quaternion x, y, z, w.
+``extents`` are the full box side lengths along object x, y, z (ShapeNet axes, y up), metres.
+Unknown keys, at the top level and per frame, are kept on save.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .atomic import write_text_atomic
+from .errors import InputError
+
+CATEGORIES = ("bottle", "bowl", "mug", "can", "camera", "laptop", "other")
+SYMMETRIES = ("none", "y")
+SOURCES = ("manual", "tracked", "refined")
+#: Categories whose shapes are rotationally symmetric about object +y by default.
+SYMMETRIC_CATEGORIES = ("bottle", "bowl", "can")
+DEFAULT_NAME = "annotation.yaml"
+
+
+def default_symmetry(category: str) -> str:
+    return "y" if category in SYMMETRIC_CATEGORIES else "none"
+
+
+@dataclass
+class FramePose:
+    """A frame's box pose: position (3,) m in the camera frame, orientation (4,) x y z w (object to camera)."""
+
+    position: np.ndarray
+    orientation: np.ndarray
+    source: str = "manual"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 object-to-camera transform."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(self.orientation).as_matrix()
+        T[:3, 3] = self.position
+        return T
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray, source: str = "manual", extra: dict | None = None) -> "FramePose":
+        from scipy.spatial.transform import Rotation
+
+        T = np.asarray(T, dtype=np.float64)
+        return cls(T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3]).as_quat(), source, dict(extra or {}))
+
+
+@dataclass
+class Annotation:
+    """The whole annotation document of one sequence."""
+
+    sequence: str
+    category: str = "other"
+    symmetry: str = "none"
+    extents: np.ndarray = field(default_factory=lambda: np.array([0.1, 0.1, 0.1]))
+    frames: dict[str, FramePose] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def copy(self) -> "Annotation":
+        return copy.deepcopy(self)
+
+    def frames_with_source(self, *sources: str) -> list[str]:
+        return [k for k, f in self.frames.items() if f.source in sources]
+
+    def to_dict(self) -> dict:
+        out: dict[str, Any] = {
+            "sequence": self.sequence,
+            "category": self.category,
+            "symmetry": self.symmetry,
+            "extents": [float(x) for x in self.extents],
+        }
+        out.update({k: v for k, v in self.extra.items() if k not in out and k != "frames"})
+        frames = {}
+        for frame_id in sorted(self.frames):
+            f = self.frames[frame_id]
+            entry: dict[str, Any] = {
+                "position": [float(x) for x in f.position],
+                "orientation": [float(x) for x in f.orientation],
+                "source": f.source,
+            }
+            entry.update({k: _plain(v) for k, v in f.extra.items() if k not in entry})
+            frames[str(frame_id)] = entry
+        out["frames"] = frames
+        return out
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and arrays to plain YAML-safe Python."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _vector(path: Path, where: str, value: Any, n: int) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise InputError(path, f"{where} must be a list of {n} numbers, got {value!r}")
+    if any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value):
+        raise InputError(path, f"{where} must be a list of {n} numbers, got {value!r}")
+    array = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise InputError(path, f"{where} has a NaN or infinite value: {value!r}")
+    return array
+
+
+def annotation_from_dict(data: Any, path: str | Path = "<document>", default_sequence: str = "") -> Annotation:
+    """Validate a parsed document; raises InputError naming ``path`` and the problem."""
+    path = Path(path)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise InputError(path, "annotation document must be a mapping (sequence, category, symmetry, extents, frames)")
+    sequence = str(data.get("sequence", default_sequence) or default_sequence)
+    category = data.get("category", "other")
+    if category not in CATEGORIES:
+        raise InputError(path, f"category {category!r} is not one of {', '.join(CATEGORIES)}")
+    symmetry = data.get("symmetry", default_symmetry(category))
+    if symmetry is None or symmetry is False:
+        symmetry = "none"
+    if symmetry not in SYMMETRIES:
+        raise InputError(path, f"symmetry {symmetry!r} is not one of {', '.join(SYMMETRIES)}")
+    extents = _vector(path, "extents", data.get("extents", [0.1, 0.1, 0.1]), 3)
+    if np.any(extents <= 0):
+        raise InputError(path, f"extents must be positive (an empty box), got {extents.tolist()}")
+    frames_data = data.get("frames") or {}
+    if not isinstance(frames_data, dict):
+        raise InputError(path, "frames must be a mapping from frame id to pose")
+    frames: dict[str, FramePose] = {}
+    for key, entry in frames_data.items():
+        frame_id = str(key)
+        if isinstance(key, int):  # YAML read an unquoted 0000001 as an int: keep Redwood's 7 digits
+            frame_id = f"{key:07d}"
+        where = f"frame {frame_id}"
+        if not isinstance(entry, dict):
+            raise InputError(path, f"{where} must be a mapping with position and orientation")
+        position = _vector(path, f"{where} position", entry.get("position"), 3)
+        orientation = _vector(path, f"{where} orientation", entry.get("orientation"), 4)
+        norm = float(np.linalg.norm(orientation))
+        if not math.isclose(norm, 1.0, abs_tol=1e-3):
+            raise InputError(path, f"{where} orientation is not a unit quaternion (norm {norm:.4g}; order x, y, z, w)")
+        source = entry.get("source", "manual")
+        if source not in SOURCES:
+            raise InputError(path, f"{where} source {source!r} is not one of {', '.join(SOURCES)}")
+        extra = {k: v for k, v in entry.items() if k not in ("position", "orientation", "source")}
+        frames[frame_id] = FramePose(position, orientation / norm, source, extra)
+    extra = {k: v for k, v in data.items() if k not in ("sequence", "category", "symmetry", "extents", "frames")}
+    return Annotation(sequence, category, symmetry, extents, frames, extra)
+
+
+def load_annotation(path: str | Path, default_sequence: str | None = None) -> Annotation:
+    """Read and validate an annotation document."""
+    path = Path(path)
+    if default_sequence is None:
+        default_sequence = path.resolve().parent.name
+    try:
+        text = path.read_text()
+    except FileNotFoundError as error:
+        raise InputError(path, "annotation document not found") from error
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(path, f"cannot read annotation document ({error.__class__.__name__})") from error
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise InputError(path, f"malformed YAML: {' '.join(str(error).split())}") from error
+    return annotation_from_dict(data, path, default_sequence)
+
+
+def save_annotation(annotation: Annotation, path: str | Path, backup: bool = True) -> Path:
+    """Write the document atomically (temporary file, fsync, rename); keep the previous one as ``.bak``."""
+    text = yaml.safe_dump(annotation.to_dict(), sort_keys=False, default_flow_style=None, width=120)
+    return write_text_atomic(path, text, backup=backup)
+
+
+def annotation_path(sequence_root: str | Path, override: str | Path | None = None) -> Path:
+    """The document path: ``--annotation FILE`` if given, else ``SEQ/annotation.yaml``."""
+    return Path(override) if override else Path(sequence_root) / DEFAULT_NAME

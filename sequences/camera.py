@@ -1,0 +1,114 @@
+"""The pinhole RGB-D camera: intrinsics, depth scale, projection and back-projection.
+
+Frames: OpenCV camera (x right, y down, z forward), metres. Pixel centres at integer
+coordinates: pixel (u, v) covers [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .errors import InputError
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics (pixels) and depth scale (metres per depth unit). Defaults: Redwood's PrimeSense."""
+
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 319.5
+    cy: float = 239.5
+    width: int = 640
+    height: int = 480
+    depth_scale: float = 0.001
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape (height, width)."""
+        return (self.height, self.width)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project camera-frame points (N, 3) to pixel coordinates (N, 2) (u, v) and depths z (N,)."""
+        points = np.asarray(points, dtype=np.float64)
+        z = points[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.fx * points[..., 0] / z + self.cx
+            v = self.fy * points[..., 1] / z + self.cy
+        return np.stack([u, v], axis=-1), z
+
+    def pixel_rays(self) -> np.ndarray:
+        """(H, W, 3) camera-frame ray directions with z = 1 through each pixel centre."""
+        u = (np.arange(self.width) - self.cx) / self.fx
+        v = (np.arange(self.height) - self.cy) / self.fy
+        rays = np.empty((self.height, self.width, 3))
+        rays[..., 0] = u[None, :]
+        rays[..., 1] = v[:, None]
+        rays[..., 2] = 1.0
+        return rays
+
+    def backproject(self, depth: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Back-project a depth image (H, W) in metres (0 or NaN = no measurement).
+
+        Returns camera-frame points (N, 3) float64 and their flat pixel indices (N,) into the
+        image, for the valid pixels where ``mask`` (H, W bool) is true.
+        """
+        depth = np.asarray(depth)
+        valid = np.isfinite(depth) & (depth > 0)
+        if mask is not None:
+            valid &= np.asarray(mask, dtype=bool)
+        index = np.flatnonzero(valid)
+        v, u = np.divmod(index, depth.shape[1])
+        z = depth.reshape(-1)[index].astype(np.float64)
+        points = np.empty((index.size, 3))
+        points[:, 0] = (u - self.cx) / self.fx * z
+        points[:, 1] = (v - self.cy) / self.fy * z
+        points[:, 2] = z
+        return points, index
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "Camera":
+        """Read ``camera.yaml`` (fx, fy, cx, cy, width, height, depth_scale; any subset overrides the defaults)."""
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except (OSError, UnicodeDecodeError) as error:
+            raise InputError(path, f"cannot read camera file ({error.__class__.__name__})") from error
+        except yaml.YAMLError as error:
+            raise InputError(path, f"malformed YAML: {str(error).splitlines()[0]}") from error
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise InputError(path, "camera file must be a mapping of fx, fy, cx, cy, width, height, depth_scale")
+        known = {"fx", "fy", "cx", "cy", "width", "height", "depth_scale"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise InputError(path, f"unknown camera keys {unknown}; expected {sorted(known)}")
+        values = {}
+        for key, value in data.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                if key in ("cx", "cy") and isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+                    values[key] = float(value)
+                    continue
+                raise InputError(path, f"{key} must be a positive finite number, got {value!r}")
+            values[key] = int(value) if key in ("width", "height") else float(value)
+        for key in ("width", "height"):
+            if key in data and float(data[key]) != int(data[key]):
+                raise InputError(path, f"{key} must be an integer, got {data[key]!r}")
+        camera = cls(**values)
+        if not (1e-5 <= camera.depth_scale <= 0.1):
+            raise InputError(path, f"depth_scale {camera.depth_scale} m per unit is implausible (expected about 0.001 for millimetres)")
+        return camera

@@ -1,0 +1,216 @@
+"""Reading Redwood-layout RGB-D sequences: ``SEQ/rgb/*.jpg|png``, ``SEQ/depth/*.png``, optional ``SEQ/camera.yaml``.
+
+Redwood names files ``<frame number, 7 digits>-<timestamp in microseconds, 12 digits>``; colour
+and depth are numbered separately and are paired by nearest timestamp within a tolerance. Names
+without timestamps pair by sorted order. A frame's id is its colour file's frame number (or the
+colour file's stem). Opening a sequence lists files only; images are read on demand.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from .camera import Camera
+from .errors import InputError
+
+COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
+DEPTH_SUFFIXES = (".png",)
+REDWOOD_NAME = re.compile(r"^(\d+)-(\d+)$")
+#: Default pairing tolerance: half a frame period of a 30 Hz sensor, microseconds.
+DEFAULT_PAIRING_TOLERANCE_US = 16_667
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """One paired frame: its id and the colour and depth files (timestamps in microseconds, or None)."""
+
+    id: str
+    color_path: Path
+    depth_path: Path
+    color_time_us: int | None = None
+    depth_time_us: int | None = None
+
+
+@dataclass
+class Pairing:
+    """The result of pairing colour and depth files."""
+
+    frames: list[FrameFiles]
+    unpaired_color: list[Path] = field(default_factory=list)
+    unpaired_depth: list[Path] = field(default_factory=list)
+
+
+def parse_redwood_name(path: Path) -> tuple[int, int] | None:
+    """(frame number, timestamp in microseconds) of a Redwood file name, or None."""
+    match = REDWOOD_NAME.match(path.stem)
+    return (int(match.group(1)), int(match.group(2))) if match else None
+
+
+def pair_frames(color: list[Path], depth: list[Path], tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> Pairing:
+    """Pair colour and depth files by nearest timestamp (Redwood names) or by sorted order.
+
+    Each depth file serves at most one colour file (the nearest in time); colour files with no
+    depth within ``tolerance_us`` and depth files left over are reported as unpaired.
+    """
+    color = sorted(color)
+    depth = sorted(depth)
+    color_names = [parse_redwood_name(p) for p in color]
+    depth_names = [parse_redwood_name(p) for p in depth]
+    timed = color and depth and all(color_names) and all(depth_names)
+    if not timed:
+        n = min(len(color), len(depth))
+        frames = [FrameFiles(c.stem, c, d) for c, d in zip(color[:n], depth[:n])]
+        return Pairing(frames, color[n:], depth[n:])
+
+    color_order = np.argsort([t for _, t in color_names], kind="stable")
+    color = [color[i] for i in color_order]
+    color_names = [color_names[i] for i in color_order]
+    depth_order = np.argsort([t for _, t in depth_names], kind="stable")
+    depth = [depth[i] for i in depth_order]
+    depth_names = [depth_names[i] for i in depth_order]
+    tc = np.array([t for _, t in color_names], dtype=np.int64)
+    td = np.array([t for _, t in depth_names], dtype=np.int64)
+    # nearest depth for each colour frame
+    right = np.clip(np.searchsorted(td, tc), 0, len(td) - 1)
+    left = np.clip(right - 1, 0, len(td) - 1)
+    take_left = np.abs(td[left] - tc) <= np.abs(td[right] - tc)
+    nearest = np.where(take_left, left, right)
+    gap = np.abs(td[nearest] - tc)
+    ok = gap <= tolerance_us
+    # a depth frame claimed twice goes to the closer colour frame
+    order = np.lexsort((gap, nearest))
+    claimed = np.zeros(len(td), dtype=bool)
+    keep = np.zeros(len(tc), dtype=bool)
+    for i in order[ok[order]]:  # loop over frames (not pixels): a few thousand at most
+        if not claimed[nearest[i]]:
+            claimed[nearest[i]] = True
+            keep[i] = True
+    frames = []
+    for i in np.flatnonzero(keep):
+        c, d = color[i], depth[nearest[i]]
+        frames.append(FrameFiles(c.stem.split("-")[0], c, d, int(tc[i]), int(td[nearest[i]])))
+    unpaired_color = [color[i] for i in np.flatnonzero(~keep)]
+    unpaired_depth = [depth[j] for j in np.flatnonzero(~claimed)]
+    return Pairing(frames, unpaired_color, unpaired_depth)
+
+
+def _list_images(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith("."))
+
+
+class Sequence:
+    """A Redwood-layout RGB-D sequence, read lazily.
+
+    ``frames`` lists the paired frames in time order; ``color(i)`` gives (H, W, 3) uint8 RGB and
+    ``depth(i)`` gives (H, W) float32 metres with 0 where there is no measurement.
+    """
+
+    def __init__(self, root: str | Path, tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> None:
+        root = Path(root)
+        if not root.exists():
+            raise InputError(root, "sequence folder does not exist")
+        if not root.is_dir():
+            raise InputError(root, "not a folder (a sequence is a folder with rgb/ and depth/)")
+        for sub in ("rgb", "depth"):
+            if not (root / sub).is_dir():
+                raise InputError(root / sub, f"missing {sub}/ folder (Redwood layout: SEQ/rgb and SEQ/depth)")
+        self.root = root
+        self.name = root.resolve().name
+        camera_file = root / "camera.yaml"
+        self.camera = Camera.from_yaml(camera_file) if camera_file.exists() else Camera()
+        color = _list_images(root / "rgb", COLOR_SUFFIXES)
+        depth = _list_images(root / "depth", DEPTH_SUFFIXES)
+        if not color:
+            raise InputError(root / "rgb", "no colour images (*.jpg, *.png)")
+        if not depth:
+            raise InputError(root / "depth", "no depth images (*.png)")
+        pairing = pair_frames(color, depth, tolerance_us)
+        if not pairing.frames:
+            raise InputError(root, f"no colour frame has a depth frame within {tolerance_us} us")
+        self.frames: list[FrameFiles] = pairing.frames
+        self.unpaired_color = pairing.unpaired_color
+        self.unpaired_depth = pairing.unpaired_depth
+        self._index = {f.id: i for i, f in enumerate(self.frames)}
+        if len(self._index) != len(self.frames):
+            raise InputError(root / "rgb", "two colour files share a frame number")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __repr__(self) -> str:
+        return f"Sequence({str(self.root)!r}, frames={len(self)})"
+
+    @property
+    def ids(self) -> list[str]:
+        return [f.id for f in self.frames]
+
+    def index(self, frame_id: str) -> int:
+        """Position of a frame id in ``frames``."""
+        try:
+            return self._index[str(frame_id)]
+        except KeyError:
+            raise KeyError(f"frame {frame_id!r} is not in {self.root}") from None
+
+    def _resolve(self, frame: int | str) -> FrameFiles:
+        return self.frames[frame if isinstance(frame, (int, np.integer)) else self.index(frame)]
+
+    def color(self, frame: int | str) -> np.ndarray:
+        """Colour image (H, W, 3) uint8 RGB of a frame (index or id)."""
+        path = self._resolve(frame).color_path
+        image = _open_image(path)
+        if image.mode not in ("RGB", "RGBA", "L", "P"):
+            raise InputError(path, f"colour image mode {image.mode} is not 8-bit RGB")
+        array = np.asarray(image.convert("RGB"))
+        self._check_size(path, array.shape[:2])
+        return array
+
+    def depth_raw(self, frame: int | str) -> np.ndarray:
+        """Depth image (H, W) uint16 in sensor units (multiply by ``camera.depth_scale`` for metres)."""
+        path = self._resolve(frame).depth_path
+        image = _open_image(path)
+        if image.mode not in ("I;16", "I;16B", "I;16L", "I"):
+            raise InputError(path, f"depth image is not 16-bit (mode {image.mode}); expected 16-bit PNG in sensor units")
+        array = np.asarray(image)
+        if array.dtype != np.uint16:
+            if array.min(initial=0) < 0 or array.max(initial=0) > 65535:
+                raise InputError(path, "depth image is not 16-bit (values outside 0..65535)")
+            array = array.astype(np.uint16)
+        self._check_size(path, array.shape[:2])
+        if not array.any():
+            raise InputError(path, "depth frame has no valid pixel (all zero)")
+        return array
+
+    def depth(self, frame: int | str) -> np.ndarray:
+        """Depth image (H, W) float32 in metres, 0 = no measurement."""
+        return self.depth_raw(frame).astype(np.float32) * np.float32(self.camera.depth_scale)
+
+    def _check_size(self, path: Path, shape: tuple[int, int]) -> None:
+        if shape != self.camera.shape:
+            raise InputError(path, f"image is {shape[1]}x{shape[0]} but the camera is {self.camera.width}x{self.camera.height} (colour and depth must match the camera; see camera.yaml)")
+
+    def check(self) -> None:
+        """Read every frame once (raises InputError on the first bad one)."""
+        for i in range(len(self)):
+            self.color(i)
+            self.depth_raw(i)
+
+
+def _open_image(path: Path) -> Image.Image:
+    try:
+        image = Image.open(path)
+        image.load()
+    except FileNotFoundError as error:
+        raise InputError(path, "file not found") from error
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
+        raise InputError(path, f"unreadable or corrupt image ({' '.join(str(error).split()) or error.__class__.__name__})") from error
+    return image
+
+
+def open_sequence(root: str | Path, tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> Sequence:
+    """Open a Redwood-layout sequence (lists files only; see :class:`Sequence`)."""
+    return Sequence(root, tolerance_us)
