@@ -19,7 +19,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    raise SystemExit("annotate: not implemented yet")
+    if args.track:
+        from .track_command import run_track  # owned by the tracking work (issue 5)
+
+        return run_track(args)
+    from .app import serve  # owned by the browser app work (issue 7)
+
+    return serve(args)
 
 
 def entry() -> None:
