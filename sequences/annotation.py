@@ -147,8 +147,6 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
     frames: dict[str, FramePose] = {}
     for key, entry in frames_data.items():
         frame_id = str(key)
-        if isinstance(key, int):  # YAML read an unquoted 0000001 as an int: keep Redwood's 7 digits
-            frame_id = f"{key:07d}"
         where = f"frame {frame_id}"
         if not isinstance(entry, dict):
             raise InputError(path, f"{where} must be a mapping with position and orientation")
@@ -166,6 +164,21 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
     return Annotation(sequence, category, symmetry, extents, frames, extra)
 
 
+class _KeysAsTextLoader(yaml.SafeLoader):
+    """SafeLoader that keeps scalar mapping keys as their literal text.
+
+    YAML 1.1 reads an unquoted frame id such as ``0000012`` as the octal integer 10; frame ids
+    are text, so keys are never converted.
+    """
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            for key_node, _ in node.value:
+                if isinstance(key_node, yaml.ScalarNode):
+                    key_node.tag = "tag:yaml.org,2002:str"
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_annotation(path: str | Path, default_sequence: str | None = None) -> Annotation:
     """Read and validate an annotation document."""
     path = Path(path)
@@ -178,7 +191,7 @@ def load_annotation(path: str | Path, default_sequence: str | None = None) -> An
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(path, f"cannot read annotation document ({error.__class__.__name__})") from error
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_KeysAsTextLoader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as error:
         raise InputError(path, f"malformed YAML: {' '.join(str(error).split())}") from error
     return annotation_from_dict(data, path, default_sequence)
