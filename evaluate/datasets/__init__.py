@@ -1,0 +1,31 @@
+"""Dataset readers: REDWOOD75-format ground truth and NOCS REAL275 samples, as lists of :class:`Sample`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sequences.errors import InputError
+
+from .base import Dataset
+from .sample import Sample
+
+
+def open_dataset(root: str | Path, frames: str | Path | None = None) -> Dataset:
+    """Open a dataset folder: REDWOOD75 format when it holds ``annotations.json``, NOCS when it holds ``gts/``."""
+    root = Path(root)
+    if (root / "annotations.json").is_file():
+        from .redwood75 import Redwood75Dataset
+
+        return Redwood75Dataset(root, frames)
+    if (root / "gts").is_dir():
+        from .nocs import NocsDataset
+
+        if frames is not None:
+            raise InputError(frames, "--frames does not apply to a NOCS dataset (its frames are inside it)")
+        return NocsDataset(root)
+    if not root.is_dir():
+        raise InputError(root, "dataset folder not found")
+    raise InputError(root, "not a dataset folder (expected annotations.json, REDWOOD75 format, or a NOCS gts/ folder)")
+
+
+__all__ = ["Dataset", "Sample", "open_dataset"]
