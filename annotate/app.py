@@ -1,0 +1,246 @@
+"""``annotate [SEQ]``: the browser annotation tool (viser).
+
+:class:`App` ties the shared session (:mod:`.app_state`), the display frames (:mod:`.app_frames`),
+the 3D scene (:mod:`.app_scene`), the 2D views (:mod:`.app_views`) and the panels for editing
+(:mod:`.app_editing`), tracking (:mod:`.app_tracking`) and the model (:mod:`.app_model`). All GUI
+and scene elements are the server's, so every browser tab shows the same state; only the viewer
+camera is per tab.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import viser
+
+from sequences.errors import InputError
+from sequences.reader import Sequence, open_sequence
+
+from .app_editing import EditingPanel
+from .app_frames import FrameCache
+from .app_model import ModelPanel
+from .app_scene import SceneView
+from .app_state import AppState
+from .app_tracking import TrackingPanel
+from .app_views import draw_box, sensor_view, timeline_image, timeline_legend
+
+
+class App:
+    """The annotation tool on one viser server."""
+
+    def __init__(self, server: viser.ViserServer, sequence: Sequence, document: str | Path | None = None, stride: int = 2) -> None:
+        self.server = server
+        self.sequence = sequence
+        self.state = AppState(sequence, document)
+        self.cache = FrameCache(sequence, stride=stride)
+        self.render_lock = threading.RLock()
+        self._local = threading.local()
+        self.look_through = False
+        first = self.cache.get(0)
+        point_size = 1.3 * stride * first.median_depth / sequence.camera.fx  # about the pixel footprint
+        self.scene = SceneView(server, sequence.camera, point_size=point_size)
+        self.view = sensor_view(sequence.camera, first.median_depth)
+        server.initial_camera.position = self.view["position"]
+        server.initial_camera.look_at = self.view["look_at"]
+        server.initial_camera.up = self.view["up"]
+        server.initial_camera.fov = self.view["fov"]
+        server.initial_camera.near = 0.01
+
+        gui = server.gui
+        server.gui.configure_theme(control_width="large")
+        self.title = gui.add_markdown(f"**{sequence.name}**: {len(sequence)} frames")
+        self.message = gui.add_markdown("")
+        with gui.add_folder("Frame"):
+            self.frame_slider = gui.add_slider("Frame", min=0, max=max(len(sequence) - 1, 1), step=1, initial_value=0)
+            self.prev_button = gui.add_button("Previous frame", hint="hotkey B")
+            self.next_button = gui.add_button("Next frame", hint="hotkey N")
+            self.timeline = gui.add_image(timeline_image(self.state.statuses(), 0), label="Timeline", format="png")
+            gui.add_markdown(timeline_legend())
+            self.overlay = gui.add_image(first.image, label="Colour image and box", format="jpeg", jpeg_quality=85)
+        self.editing = EditingPanel(self)
+        self.tracking = TrackingPanel(self)
+        self.model = ModelPanel(self)
+        with gui.add_folder("View"):
+            self.look_button = gui.add_button("Look through camera", hint="hotkey H: view from the sensor with its field of view")
+            self.frustum_box = gui.add_checkbox("Show camera", initial_value=True)
+            self.point_slider = gui.add_slider("Point size (mm)", min=0.5, max=10.0, step=0.5, initial_value=round(point_size * 1000 * 2) / 2)
+
+        self.frame_slider.on_update(self._on_slider)
+        self.prev_button.on_click(lambda _: self.state.step(-1))
+        self.next_button.on_click(lambda _: self.state.step(1))
+        self.look_button.on_click(lambda event: self.look_through_camera(event.client))
+        self.frustum_box.on_update(self._on_frustum)
+        self.point_slider.on_update(self._on_point_size)
+        for label, key, action in (
+            ("Next frame", "N", lambda: self.state.step(1)),
+            ("Previous frame", "B", lambda: self.state.step(-1)),
+        ):
+            gui.add_command(label, hotkey=key).on_trigger(lambda _, action=action: action())
+        gui.add_command("Look through camera", hotkey="H").on_trigger(lambda event: self.look_through_camera(event.client))
+
+        self.state.subscribe(self._on_change)
+        server.on_client_connect(self._on_connect)
+        self.redraw("frame")
+
+    # --- helpers -------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def syncing(self):
+        """While the app writes GUI values itself, their update callbacks must not edit the document."""
+        previous = getattr(self._local, "syncing", False)
+        self._local.syncing = True
+        try:
+            yield
+        finally:
+            self._local.syncing = previous
+
+    @property
+    def is_syncing(self) -> bool:
+        return getattr(self._local, "syncing", False)
+
+    def say(self, text: str) -> None:
+        """One line of feedback at the top of the panel (every tab)."""
+        self.message.content = text
+
+    def commit_box(self, position, orientation, extents=None, source: str = "manual", extra: dict | None = None) -> None:
+        """Set the current frame's pose (and optionally the extents) as one undoable, saved change."""
+        from sequences.annotation import FramePose
+
+        position = np.asarray(position, dtype=np.float64)
+        orientation = np.asarray(orientation, dtype=np.float64)
+        orientation = orientation / np.linalg.norm(orientation)
+        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(orientation))):
+            self.say("Ignored a pose with a NaN value.")
+            return
+        frame_id = self.state.frame_id
+
+        def change(doc) -> None:
+            doc.frames[frame_id] = FramePose(position.copy(), orientation.copy(), source, dict(extra or {}))
+            if extents is not None:
+                doc.extents = np.asarray(extents, dtype=np.float64).copy()
+
+        self.state.edit(change)
+
+    # --- drawing -------------------------------------------------------------------------
+    def _on_change(self, kind: str) -> None:
+        self.redraw(kind)
+
+    def redraw(self, kind: str = "document") -> None:
+        """Bring the scene and the panels up to date with the session (kind: "frame" or "document")."""
+        with self.render_lock:
+            state = self.state
+            with state.lock:
+                index = state.frame
+                pose, own = state.pose()
+                extents = state.annotation.extents.copy()
+                status = state.status()
+                statuses = state.statuses()
+                annotation = state.annotation
+                category, symmetry = annotation.category, annotation.symmetry
+            frame = self.cache.get(index)
+            image = draw_box(frame.image, self.sequence.camera, pose.position, pose.orientation, extents)
+            with self.server.atomic():
+                if kind == "frame":
+                    self.scene.show_frame(frame, image)
+                else:
+                    self.scene.show_image(image, frame.median_depth)
+                self.scene.show_pose(pose.position, pose.orientation)
+                self.scene.show_box(extents, own)
+                self.overlay.image = image
+                self.timeline.image = timeline_image(statuses, index)
+                with self.syncing():
+                    self.frame_slider.value = index
+                    self.editing.sync(extents, category, symmetry)
+                frame_id = self.sequence.frames[index].id
+                note = "" if own else " (no pose yet: showing the nearest frame's box; any edit places it here)"
+                self.title.content = f"**{self.sequence.name}**: frame {index + 1}/{len(self.sequence)}, id {frame_id}, **{status}**{note}"
+                self.tracking.sync(pose, own)
+            if self.look_through:
+                self.scene.server.scene.set_background_image(frame.image, format="jpeg")
+
+    # --- callbacks -----------------------------------------------------------------------
+    def _on_slider(self, event) -> None:
+        if not self.is_syncing:
+            self.state.set_frame(int(event.target.value))
+
+    def _on_frustum(self, event) -> None:
+        if self.scene.frustum is not None:
+            self.scene.frustum.visible = bool(event.target.value)
+
+    def _on_point_size(self, event) -> None:
+        self.scene.point_size = float(event.target.value) / 1000.0
+        self.redraw("frame")
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        self.set_client_view(client)
+
+    def set_client_view(self, client: viser.ClientHandle | None) -> None:
+        """Put a tab's viewer camera at the sensor, looking at the data with the sensor's field of view."""
+        if client is None:
+            return
+        with client.atomic():
+            client.camera.up_direction = self.view["up"]
+            client.camera.position = self.view["position"]
+            client.camera.look_at = self.view["look_at"]
+            client.camera.fov = self.view["fov"]
+
+    def look_through_camera(self, client: viser.ClientHandle | None) -> None:
+        """Toggle the view through the sensor: viewer camera at the sensor, the colour image behind the points."""
+        self.look_through = not self.look_through
+        if self.look_through:
+            clients = [client] if client is not None else list(self.server.get_clients().values())
+            for c in clients:
+                self.set_client_view(c)
+            self.scene.frustum.visible = False
+            self.server.scene.set_background_image(self.cache.get(self.state.frame).image, format="jpeg")
+            self.say("Looking through the camera (H again to leave).")
+        else:
+            self.server.scene.set_background_image(None)
+            self.scene.frustum.visible = bool(self.frustum_box.value)
+            self.say("")
+
+    def close(self) -> None:
+        self.tracking.close()
+        self.model.close()
+        self.cache.close()
+
+
+def resolve_sequence(path: str | None) -> Path:
+    """The sequence folder to serve: the given one, or the bundled sample."""
+    if path is not None:
+        return Path(path)
+    try:
+        from sequences.sample import sample_sequence
+    except ImportError as error:
+        raise InputError(None, f"no sequence given and the bundled sample is not available ({error}); run: annotate SEQ") from error
+    return Path(sample_sequence())
+
+
+def serve(args) -> int:
+    """Serve the tool for ``args.sequence`` (None: the bundled sample) until interrupted."""
+    root = resolve_sequence(args.sequence)
+    sequence = open_sequence(root)
+    # read the first frame now: an unreadable sequence is refused before anything is served
+    sequence.color(0)
+    sequence.depth_raw(0)
+    server = viser.ViserServer(host=args.host, port=args.port, label="annotate", verbose=False)
+    try:
+        app = App(server, sequence, getattr(args, "annotation", None))
+    except BaseException:
+        server.stop()
+        raise
+    host = "127.0.0.1" if args.host in ("0.0.0.0", "") else args.host
+    print(f"annotate: serving {sequence.root} ({len(sequence)} frames), document {app.state.path}", flush=True)
+    print(f"annotate: open http://{host}:{server.get_port()}", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.close()
+        server.stop()
+    return 0

@@ -1,0 +1,207 @@
+"""The editing panel: gizmo and face drags, extents, nudges, turns and flips, fit, snap upright, category, undo/redo.
+
+Each action is one undoable change of the shared document (saved at once). Hotkeys are viser
+commands (also in its command palette, cmd/ctrl+K).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sequences.annotation import CATEGORIES, SYMMETRIES, default_symmetry
+from sequences.pointcloud import frame_points
+
+from . import box_edits
+from .app_scene import FACES, xyzw
+
+if TYPE_CHECKING:
+    from .app import App
+
+NUDGE_STEPS_MM = ("1", "2", "5", "10", "20")
+
+
+class EditingPanel:
+    """GUI for changing the box of the current frame and the document's category, symmetry and extents."""
+
+    def __init__(self, app: "App") -> None:
+        self.app = app
+        gui = app.server.gui
+        with gui.add_folder("Box"):
+            self.category = gui.add_dropdown("Category", CATEGORIES, initial_value=app.state.annotation.category)
+            self.symmetry = gui.add_dropdown("Symmetry", SYMMETRIES, initial_value=app.state.annotation.symmetry, hint="y: rotationally symmetric about object +y")
+            e = app.state.annotation.extents * 1000
+            self.extent_inputs = [
+                gui.add_number(f"{name} (mm)", initial_value=float(round(v, 1)), min=1.0, max=5000.0, step=0.5)
+                for name, v in zip(("Width x", "Height y", "Depth z"), e)
+            ]
+            self.step = gui.add_dropdown("Nudge step (mm)", NUDGE_STEPS_MM, initial_value="2")
+            self.move = [gui.add_button_group(f"Move along {a}", ("-", "+")) for a in "xyz"]
+            self.turn90 = gui.add_button_group("Turn 90° about", ("x", "y", "z"))
+            self.flip180 = gui.add_button_group("Flip 180° about", ("x", "y", "z"))
+            self.place = gui.add_button("Place box in this frame", hint="give this frame the box shown (e.g. borrowed from a neighbour)")
+            self.fit = gui.add_button("Fit box to points", hint="hotkey G: shrink or grow the box to the points inside it")
+            self.upright = gui.add_button("Snap upright", hint="symmetric categories: canonical turn about the axis")
+            self.delete = gui.add_button("Remove pose of this frame")
+            self.undo = gui.add_button("Undo", hint="cmd/ctrl+Z")
+            self.redo = gui.add_button("Redo", hint="cmd/ctrl+Y")
+            self.face_box = gui.add_checkbox("Face handles", initial_value=True, hint="drag a face's arrow to move that face")
+
+        state = app.state
+        self.category.on_update(self._on_category)
+        self.symmetry.on_update(self._on_symmetry)
+        for axis, number in enumerate(self.extent_inputs):
+            number.on_update(lambda event, axis=axis: self._on_extent(axis, event.target.value))
+        for axis, group in enumerate(self.move):
+            group.on_click(lambda event, axis=axis: self.nudge(axis, 1 if event.target.value == "+" else -1))
+        self.turn90.on_click(lambda event: self.turn("xyz".index(event.target.value), 90.0))
+        self.flip180.on_click(lambda event: self.turn("xyz".index(event.target.value), 180.0))
+        self.place.on_click(lambda _: self.place_here())
+        self.fit.on_click(lambda _: self.fit_to_points())
+        self.upright.on_click(lambda _: self.snap_upright())
+        self.delete.on_click(lambda _: self.remove_pose())
+        self.undo.on_click(lambda _: state.undo() or app.say("Nothing to undo."))
+        self.redo.on_click(lambda _: state.redo() or app.say("Nothing to redo."))
+        self.face_box.on_update(self._on_face_box)
+        app.scene.gizmo.on_update(self._on_gizmo)
+        self._hook_faces()
+
+        gui = app.server.gui
+        commands = [
+            ("Undo", "Z", "cmd/ctrl", lambda: state.undo()),
+            ("Redo", "Y", "cmd/ctrl", lambda: state.redo()),
+            ("Fit box to points", "G", None, self.fit_to_points),
+            ("Snap upright", "U", None, self.snap_upright),
+        ]
+        for axis, (minus, plus) in enumerate((("J", "L"), ("K", "I"), ("O", "P"))):
+            commands.append((f"Move -{'xyz'[axis]}", minus, None, lambda axis=axis: self.nudge(axis, -1)))
+            commands.append((f"Move +{'xyz'[axis]}", plus, None, lambda axis=axis: self.nudge(axis, 1)))
+        for axis in range(3):
+            commands.append((f"Flip 180° about {'xyz'[axis]}", str(axis + 1), None, lambda axis=axis: self.turn(axis, 180.0)))
+            commands.append((f"Turn 90° about {'xyz'[axis]}", str(axis + 4), None, lambda axis=axis: self.turn(axis, 90.0)))
+        for label, key, modifier, action in commands:
+            gui.add_command(label, hotkey=key, modifier=modifier).on_trigger(lambda _, action=action: action())
+
+    # --- sync from the state -------------------------------------------------------------
+    def sync(self, extents, category: str, symmetry: str) -> None:
+        """Show the document's values (called inside ``app.syncing()``)."""
+        for number, value in zip(self.extent_inputs, extents):
+            number.value = float(round(value * 1000, 1))
+        self.category.value = category
+        self.symmetry.value = symmetry
+
+    # --- actions -------------------------------------------------------------------------
+    def _box(self):
+        state = self.app.state
+        with state.lock:
+            pose, own = state.pose()
+            return pose.position.copy(), pose.orientation.copy(), state.annotation.extents.copy(), own
+
+    def nudge(self, axis: int, sign: int) -> None:
+        """Move the box by the nudge step along its own axis."""
+        position, orientation, _, _ = self._box()
+        step = float(self.step.value) / 1000.0
+        self.app.commit_box(box_edits.nudge(position, orientation, axis, sign * step), orientation)
+
+    def turn(self, axis: int, degrees: float) -> None:
+        """Turn the box about its own axis (90) or flip it (180)."""
+        position, orientation, _, _ = self._box()
+        self.app.commit_box(position, box_edits.turn(orientation, axis, degrees))
+
+    def place_here(self) -> None:
+        position, orientation, _, _ = self._box()
+        self.app.commit_box(position, orientation)
+
+    def remove_pose(self) -> None:
+        state = self.app.state
+        frame_id = state.frame_id
+        if frame_id not in state.annotation.frames:
+            self.app.say("This frame has no pose.")
+            return
+        state.edit(lambda doc: doc.frames.pop(frame_id, None))
+
+    def fit_to_points(self) -> None:
+        """Fit the box to the frame's full-resolution points inside it (grown by 1 cm), orientation kept."""
+        app = self.app
+        position, orientation, extents, _ = self._box()
+        cloud = frame_points(app.sequence, app.state.frame, box=(position, orientation, extents), margin=0.01)
+        fitted = box_edits.fit_to_points(cloud.points, position, orientation, extents, margin=0.0, trim=0.002)
+        if fitted is None:
+            app.say("Fit: fewer than 10 points inside the box.")
+            return
+        app.commit_box(fitted[0], orientation, extents=fitted[1])
+        app.say(f"Fitted the box to {len(cloud)} points.")
+
+    def snap_upright(self) -> None:
+        """Canonical turn about the symmetry axis (the axis estimated from the points when the tracking engine offers it)."""
+        app = self.app
+        if app.state.annotation.symmetry != "y":
+            app.say("Snap upright is for symmetric categories (symmetry y).")
+            return
+        position, orientation, extents, _ = self._box()
+        up = None
+        try:
+            from .tracking import estimate_axis  # the tracking engine's axis estimate, when present
+        except ImportError:
+            estimate_axis = None
+        if estimate_axis is not None:
+            try:
+                cloud = frame_points(app.sequence, app.state.frame, box=(position, orientation, extents), margin=0.01)
+                up = estimate_axis(cloud.points, position, orientation, extents)
+            except Exception as error:  # an estimate that fails leaves the current axis
+                app.say(f"Axis estimate failed ({error}); kept the box's axis.")
+        app.commit_box(position, box_edits.upright_about_y(position, orientation, up))
+
+    def _on_category(self, event) -> None:
+        if self.app.is_syncing:
+            return
+        category = event.target.value
+
+        def change(doc) -> None:
+            doc.category = category
+            doc.symmetry = default_symmetry(category)
+
+        self.app.state.edit(change)
+
+    def _on_symmetry(self, event) -> None:
+        if self.app.is_syncing:
+            return
+        symmetry = event.target.value
+        self.app.state.edit(lambda doc: setattr(doc, "symmetry", symmetry))
+
+    def _on_extent(self, axis: int, value_mm: float) -> None:
+        if self.app.is_syncing:
+            return
+        extents = self.app.state.annotation.extents.copy()
+        value = float(value_mm) / 1000.0
+        if not np.isfinite(value) or value <= 0 or abs(value - extents[axis]) < 1e-7:
+            return
+        extents[axis] = value
+        self.app.state.set_extents(extents)
+
+    def _on_face_box(self, event) -> None:
+        self.app.scene.show_faces = bool(event.target.value)
+        for handle in self.app.scene.face_handles.values():
+            handle.visible = self.app.scene.show_faces
+
+    def _on_gizmo(self, event) -> None:
+        """Commit the gizmo's pose when a drag ends (one undo step per drag)."""
+        if getattr(event, "phase", "end") != "end":
+            return
+        target = event.target
+        self.app.commit_box(np.asarray(target.position, dtype=np.float64), xyzw(target.wxyz))
+
+    def _hook_faces(self) -> None:
+        for name, axis, sign in FACES:
+            self.app.scene.face_handles[name].on_update(lambda event, axis=axis, sign=sign: self._on_face(event, axis, sign))
+
+    def _on_face(self, event, axis: int, sign: int) -> None:
+        """A face handle was dragged: move that face by the drag along its normal, the opposite face stays."""
+        if getattr(event, "phase", "end") != "end":
+            return
+        position, orientation, extents, _ = self._box()
+        rest = sign * extents[axis] / 2
+        distance = sign * (float(np.asarray(event.target.position)[axis]) - rest)  # outward, metres
+        new_position, new_extents = box_edits.drag_face(position, orientation, extents, axis, sign, distance)
+        self.app.commit_box(new_position, orientation, extents=new_extents)

@@ -1,0 +1,239 @@
+"""The annotation session shared by every browser tab: document, current frame, undo/redo, autosave.
+
+One ``AppState`` lives in the server; all clients read and change it, so every tab sees the same
+document and frame. Every change goes through :meth:`AppState.edit` (or undo/redo), which keeps
+the previous document on the undo stack, saves the document atomically (previous file kept as
+``.bak``) and tells the listeners (the scene and the panels) to redraw.
+
+Poses are object to camera (p_cam = R p_obj + t), metres, quaternions x, y, z, w.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from sequences.annotation import (
+    Annotation,
+    FramePose,
+    annotation_path,
+    default_symmetry,
+    load_annotation,
+    save_annotation,
+)
+from sequences.errors import InputError
+from sequences.reader import Sequence
+
+#: Box side length (m) of a new document's first box.
+DEFAULT_BOX_SIZE = 0.10
+#: Half width (px) of the centre window whose median depth places a new document's first box.
+CENTRE_WINDOW = 20
+UNDO_DEPTH = 200
+#: Default box orientation: object +y up (camera -y), object +z (front, mug handle) towards the camera.
+FACING_CAMERA = np.array([1.0, 0.0, 0.0, 0.0])  # 180 degrees about x: x y z w
+
+STATUSES = ("manual", "tracked", "refined", "flagged", "none")
+
+Listener = Callable[[str], None]
+
+
+def is_flagged(pose: FramePose) -> bool:
+    """Whether the tracking engine flagged this pose for review (``flagged: true`` or a non-empty ``flags``)."""
+    extra = pose.extra
+    if extra.get("reviewed") == "accepted":
+        return False
+    return bool(extra.get("flagged")) or bool(extra.get("flags"))
+
+
+def frame_status(annotation: Annotation, frame_id: str) -> str:
+    """One of :data:`STATUSES` for a frame of the document."""
+    pose = annotation.frames.get(frame_id)
+    if pose is None:
+        return "none"
+    if is_flagged(pose):
+        return "flagged"
+    return pose.source
+
+
+def default_position(sequence: Sequence, frame: int = 0, window: int = CENTRE_WINDOW) -> np.ndarray:
+    """Camera-frame point (m) on the optical axis at the median valid depth of the centre pixels.
+
+    Falls back to the median of the whole frame's valid depth when the centre has none.
+    """
+    depth = sequence.depth(frame)
+    cam = sequence.camera
+    # pixels whose centres lie within ``window`` px of the principal point, on both axes
+    v_lo, v_hi = max(int(np.ceil(cam.cy - window)), 0), int(np.floor(cam.cy + window)) + 1
+    u_lo, u_hi = max(int(np.ceil(cam.cx - window)), 0), int(np.floor(cam.cx + window)) + 1
+    centre = depth[v_lo:v_hi, u_lo:u_hi]
+    valid = centre[centre > 0]
+    if valid.size == 0:
+        valid = depth[depth > 0]
+    z = float(np.median(valid))
+    return np.array([0.0, 0.0, z])
+
+
+def new_document(sequence: Sequence, category: str = "other") -> Annotation:
+    """A fresh document: named after the folder, a 10 cm box at the centre depth of the first frame."""
+    annotation = Annotation(
+        sequence=sequence.name,
+        category=category,
+        symmetry=default_symmetry(category),
+        extents=np.full(3, DEFAULT_BOX_SIZE),
+    )
+    return annotation
+
+
+class AppState:
+    """The shared session: the sequence, its document, the current frame and the edit history."""
+
+    def __init__(self, sequence: Sequence, document: str | Path | None = None, category: str = "other") -> None:
+        self.sequence = sequence
+        self.path = annotation_path(sequence.root, document)
+        self.lock = threading.RLock()
+        if self.path.exists():
+            self.annotation = load_annotation(self.path, default_sequence=sequence.name)
+            unknown = sorted(set(self.annotation.frames) - set(sequence.ids))
+            if unknown:
+                raise InputError(self.path, f"frames {unknown[:3]} are not in the sequence {sequence.root}")
+            self.is_new = False
+        else:
+            if not self.path.parent.exists():
+                raise InputError(self.path, "folder of the annotation document does not exist")
+            self.annotation = new_document(sequence, category)
+            self.is_new = True  # nothing on disk until the first change
+        self._default_position = default_position(sequence, 0)
+        self.frame = 0
+        self.undo_stack: list[Annotation] = []
+        self.redo_stack: list[Annotation] = []
+        self.saves = 0
+        self._listeners: list[Listener] = []
+
+    # --- observers -------------------------------------------------------------------------
+    def subscribe(self, listener: Listener) -> None:
+        """Call ``listener(kind)`` after every change; kind is "frame" or "document"."""
+        self._listeners.append(listener)
+
+    def _notify(self, kind: str) -> None:
+        for listener in list(self._listeners):
+            listener(kind)
+
+    # --- frames ----------------------------------------------------------------------------
+    @property
+    def frame_id(self) -> str:
+        return self.sequence.frames[self.frame].id
+
+    def set_frame(self, index: int) -> None:
+        """Go to frame ``index`` (clamped to the sequence)."""
+        index = int(np.clip(index, 0, len(self.sequence) - 1))
+        with self.lock:
+            if index == self.frame:
+                return
+            self.frame = index
+        self._notify("frame")
+
+    def step(self, delta: int) -> None:
+        self.set_frame(self.frame + delta)
+
+    def status(self, frame_id: str | None = None) -> str:
+        with self.lock:
+            return frame_status(self.annotation, frame_id or self.frame_id)
+
+    def statuses(self) -> list[str]:
+        """Status of every frame, in sequence order."""
+        with self.lock:
+            return [frame_status(self.annotation, f.id) for f in self.sequence.frames]
+
+    def next_flagged(self) -> int | None:
+        """Index of the next flagged frame after the current one (wrapping), or None."""
+        statuses = self.statuses()
+        n = len(statuses)
+        for k in range(1, n + 1):
+            i = (self.frame + k) % n
+            if statuses[i] == "flagged":
+                return i
+        return None
+
+    # --- poses -----------------------------------------------------------------------------
+    def pose(self, frame_id: str | None = None) -> tuple[FramePose, bool]:
+        """The box pose shown in a frame and whether the frame has its own.
+
+        A frame without a pose shows the pose of the nearest frame that has one, or the default
+        box (10 cm, at the centre depth of the first frame, upright facing the camera).
+        """
+        with self.lock:
+            frame_id = frame_id or self.frame_id
+            own = self.annotation.frames.get(frame_id)
+            if own is not None:
+                return own, True
+            if self.annotation.frames:
+                here = self.sequence.index(frame_id)
+                known = [self.sequence.index(k) for k in self.annotation.frames]
+                nearest = self.sequence.frames[min(known, key=lambda i: (abs(i - here), i))].id
+                src = self.annotation.frames[nearest]
+                return FramePose(src.position.copy(), src.orientation.copy(), "manual"), False
+            return FramePose(self._default_position.copy(), FACING_CAMERA.copy(), "manual"), False
+
+    # --- changes ---------------------------------------------------------------------------
+    def edit(self, change: Callable[[Annotation], None]) -> None:
+        """Apply ``change`` to the document as one undoable step, save it, redraw."""
+        with self.lock:
+            before = self.annotation.copy()
+            change(self.annotation)
+            self.undo_stack.append(before)
+            del self.undo_stack[:-UNDO_DEPTH]
+            self.redo_stack.clear()
+            self._save()
+        self._notify("document")
+
+    def set_pose(self, position, orientation, source: str = "manual", frame_id: str | None = None, keep_extra: bool = False) -> None:
+        """Give a frame (default: the current one) a pose; a manual edit drops tracking figures and flags."""
+        position = np.asarray(position, dtype=np.float64)
+        orientation = np.asarray(orientation, dtype=np.float64)
+        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(orientation))):
+            raise ValueError("pose has a NaN or infinite value")
+        orientation = orientation / np.linalg.norm(orientation)
+        frame_id = frame_id or self.frame_id
+
+        def change(doc: Annotation) -> None:
+            old = doc.frames.get(frame_id)
+            extra = dict(old.extra) if (old is not None and keep_extra) else {}
+            doc.frames[frame_id] = FramePose(position.copy(), orientation.copy(), source, extra)
+
+        self.edit(change)
+
+    def set_extents(self, extents) -> None:
+        extents = np.asarray(extents, dtype=np.float64)
+        if extents.shape != (3,) or not np.all(np.isfinite(extents)) or np.any(extents <= 0):
+            raise ValueError(f"extents must be three positive numbers, got {extents}")
+
+        def change(doc: Annotation) -> None:
+            doc.extents = extents.copy()
+
+        self.edit(change)
+
+    def _restore(self, source: list[Annotation], target: list[Annotation]) -> bool:
+        with self.lock:
+            if not source:
+                return False
+            target.append(self.annotation.copy())
+            self.annotation = source.pop()
+            self._save()
+        self._notify("document")
+        return True
+
+    def undo(self) -> bool:
+        """Go back one change; False when there is none."""
+        return self._restore(self.undo_stack, self.redo_stack)
+
+    def redo(self) -> bool:
+        """Redo the last undone change; False when there is none."""
+        return self._restore(self.redo_stack, self.undo_stack)
+
+    def _save(self) -> None:
+        save_annotation(self.annotation, self.path)
+        self.saves += 1
+        self.is_new = False

@@ -1,0 +1,106 @@
+"""2D views of the session: the colour image with the projected box, the frame timeline, the sensor's view.
+
+The scene's world frame is the current frame's OpenCV camera frame (metres; the scene's up is -y),
+so the sensor sits at the origin looking along +z.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from evaluate.geometry import BOX_EDGES, box_corners, pose_matrix
+from sequences.camera import Camera
+
+#: Edge colours by the object axis they run along (x red, y green, z blue), RGB.
+AXIS_COLORS = np.array([[235, 70, 60], [70, 220, 90], [70, 140, 255]], dtype=np.uint8)
+#: Timeline colours by frame status, RGB.
+STATUS_COLORS = {
+    "manual": (40, 170, 70),
+    "refined": (50, 110, 230),
+    "tracked": (130, 195, 245),
+    "flagged": (225, 45, 45),
+    "none": (70, 70, 70),
+}
+#: Faces tinted so that up (+y) and front / handle side (+z) are clear: (axis, sign, RGBA).
+TINTED_FACES = ((1, 1, (70, 220, 90, 90)), (2, 1, (70, 140, 255, 90)))
+
+
+def edge_axes() -> np.ndarray:
+    """Object axis (0, 1, 2) along which each of the 12 :data:`BOX_EDGES` runs."""
+    a, b = BOX_EDGES[:, 0], BOX_EDGES[:, 1]
+    bits = a ^ b  # corner index bits: 4 = x, 2 = y, 1 = z
+    return np.where(bits == 4, 0, np.where(bits == 2, 1, 2))
+
+
+def face_corners(axis: int, sign: int) -> np.ndarray:
+    """Indices into :func:`box_corners` of the 4 corners of a face, in order around it."""
+    bit = {0: 4, 1: 2, 2: 1}[axis]
+    others = [b for b in (4, 2, 1) if b != bit]
+    base = bit if sign > 0 else 0
+    return np.array([base, base + others[0], base + others[0] + others[1], base + others[1]])
+
+
+def project_box(camera: Camera, position, orientation, extents) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (8, 2) and depths (8,) of the box corners in the image."""
+    corners = box_corners(extents, pose_matrix(position, orientation))
+    return camera.project(corners)
+
+
+def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, width: int = 2) -> np.ndarray:
+    """A copy of ``image`` (H, W, 3) uint8 with the box's edges drawn (coloured by axis) and up/front faces tinted.
+
+    Edges with a corner behind the camera are left out rather than drawn wrapped around.
+    """
+    uv, z = project_box(camera, position, orientation, extents)
+    base = Image.fromarray(np.asarray(image, dtype=np.uint8)).convert("RGBA")
+    overlay = Image.new("RGBA", base.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(overlay)
+    in_front = z > 1e-3
+    for axis, sign, rgba in TINTED_FACES:
+        idx = face_corners(axis, sign)
+        if np.all(in_front[idx]):
+            draw.polygon([tuple(map(float, uv[i])) for i in idx], fill=rgba)
+    for (a, b), axis in zip(BOX_EDGES, edge_axes()):
+        if in_front[a] and in_front[b]:
+            draw.line([tuple(map(float, uv[a])), tuple(map(float, uv[b]))], fill=tuple(int(c) for c in AXIS_COLORS[axis]) + (255,), width=width)
+    return np.asarray(Image.alpha_composite(base, overlay).convert("RGB"))
+
+
+def timeline_image(statuses: list[str], current: int, width: int = 600, height: int = 28) -> np.ndarray:
+    """A strip (height, width, 3) uint8: one coloured cell per frame by status, the current frame marked."""
+    n = max(len(statuses), 1)
+    colors = np.array([STATUS_COLORS[s] for s in statuses] or [STATUS_COLORS["none"]], dtype=np.uint8)
+    column = np.minimum((np.arange(width) * n) // width, n - 1)  # frame shown in each pixel column
+    strip = np.repeat(colors[column][None, :, :], height, axis=0)
+    lo = (current * width) // n
+    hi = max(((current + 1) * width) // n, lo + 2)
+    strip[: height // 4, lo:hi] = 255  # white marks above and below the current frame
+    strip[-(height // 4) :, lo:hi] = 255
+    return strip
+
+
+def timeline_legend() -> str:
+    """Markdown legend of the timeline colours."""
+    spans = [f"<span style='color:rgb{STATUS_COLORS[s]}'>&#9632;</span> {s}" for s in STATUS_COLORS]
+    return " &nbsp; ".join(spans)
+
+
+def sensor_fov(camera: Camera) -> float:
+    """Vertical field of view of the sensor, radians."""
+    return 2.0 * math.atan2(camera.height / 2.0, camera.fy)
+
+
+def sensor_view(camera: Camera, median_depth: float) -> dict:
+    """Viewer camera at the sensor, looking down the optical axis at the data, with the sensor's field of view.
+
+    In the world frame (the current frame's camera frame): position, look_at, up (-y), fov (rad).
+    """
+    return {
+        "position": np.zeros(3),
+        "look_at": np.array([0.0, 0.0, max(float(median_depth), 0.1)]),
+        "up": np.array([0.0, -1.0, 0.0]),
+        "fov": sensor_fov(camera),
+    }

@@ -1,0 +1,195 @@
+"""The app on a real viser server, driven through its GUI handles' callbacks (no browser)."""
+
+from __future__ import annotations
+
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import viser
+from scipy.spatial.transform import Rotation
+from test_app_fixtures import TRUE_EXTENTS, make_sequence
+
+from annotate.app import App
+from annotate.app_frames import load_display_frame
+from annotate.app_scene import wxyz
+from annotate.app_tracking import tracking_engine
+from annotate.app_views import AXIS_COLORS, STATUS_COLORS, draw_box, edge_axes, timeline_image
+from evaluate.geometry import BOX_EDGES
+from sequences.annotation import load_annotation
+from sequences.camera import Camera
+from sequences.reader import open_sequence
+
+
+@pytest.fixture(scope="module")
+def sequence_root(tmp_path_factory):
+    root, poses = make_sequence(tmp_path_factory.mktemp("ui") / "box_seq", frames=4)
+    return root, poses
+
+
+@pytest.fixture
+def app(sequence_root, tmp_path):
+    root = tmp_path / "box_seq"
+    shutil.copytree(sequence_root[0], root)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = App(server, open_sequence(root))
+    yield app
+    app.close()
+    server.stop()
+
+
+def test_next_frame_button_shows_the_next_frame_at_full_precision(app):
+    app.next_button.value = True  # what a click does: run the button's callbacks
+    assert app.state.frame == 1
+    assert app.frame_slider.value == 1
+    cloud = app.scene.cloud
+    shown = np.asarray(cloud.points, dtype=np.float64) + np.asarray(cloud.position)
+    truth = load_display_frame(app.sequence, 1, stride=app.cache.stride)
+    # float32 positions relative to a nearby origin: far below a millimetre of error
+    assert cloud.precision == "float32"
+    assert np.max(np.abs(shown - truth.points.astype(np.float64))) < 1e-6
+    np.testing.assert_array_equal(np.asarray(cloud.colors), truth.colors)
+    app.prev_button.value = True
+    assert app.state.frame == 0
+    app.frame_slider.value = 3
+    assert app.state.frame == 3 and "frame 4/4" in app.title.content
+
+
+def test_extents_inputs_flip_and_undo_redo_are_saved(app):
+    path = app.state.path
+    app.editing.extent_inputs[0].value = 50.0  # mm
+    assert path.exists()
+    np.testing.assert_allclose(load_annotation(path).extents, [0.05, 0.1, 0.1])
+    pose, own = app.state.pose()
+    assert not own  # extents are the document's; the frame still has no pose of its own
+    app.editing.flip180.value = "y"
+    doc = load_annotation(path)
+    R0 = Rotation.from_quat(pose.orientation).as_matrix()
+    R1 = doc.frames["0000001"].matrix[:3, :3]
+    np.testing.assert_allclose(R1[:, 1], R0[:, 1], atol=1e-9)
+    np.testing.assert_allclose(R1[:, 0], -R0[:, 0], atol=1e-9)
+    app.editing.undo.value = True
+    assert "0000001" not in load_annotation(path).frames
+    app.editing.undo.value = True
+    np.testing.assert_allclose(load_annotation(path).extents, [0.1, 0.1, 0.1])
+    assert app.editing.extent_inputs[0].value == 100.0  # the panel follows the document
+    app.editing.redo.value = True
+    app.editing.redo.value = True
+    assert "0000001" in load_annotation(path).frames
+
+
+def test_gizmo_drag_and_face_drag_edit_the_box(app):
+    position = np.array([0.02, -0.01, 0.75])
+    orientation = Rotation.from_euler("xyz", [170, 10, 5], degrees=True).as_quat()
+    # the end of a gizmo drag commits its pose (one undo step)
+    app.editing._on_gizmo(SimpleNamespace(phase="update", target=SimpleNamespace(position=position * 2, wxyz=wxyz(orientation))))
+    assert app.state.saves == 0  # intermediate drag updates are not edits
+    app.editing._on_gizmo(SimpleNamespace(phase="end", target=SimpleNamespace(position=position, wxyz=wxyz(orientation))))
+    doc = load_annotation(app.state.path)
+    np.testing.assert_allclose(doc.frames["0000001"].position, position)
+    np.testing.assert_allclose(abs(np.dot(doc.frames["0000001"].orientation, orientation)), 1.0, atol=1e-12)
+    # the +x face handle dragged 2 cm outwards: width grows by 2 cm, centre moves 1 cm along box x
+    handle_end = np.array([0.05 + 0.02, 0.0, 0.0])
+    app.editing._on_face(SimpleNamespace(phase="end", target=SimpleNamespace(position=handle_end)), 0, 1)
+    doc = load_annotation(app.state.path)
+    np.testing.assert_allclose(doc.extents, [0.12, 0.1, 0.1], atol=1e-12)
+    R = Rotation.from_quat(orientation).as_matrix()
+    np.testing.assert_allclose(doc.frames["0000001"].position, position + 0.01 * R[:, 0], atol=1e-12)
+    # the face handles are put back on the faces of the new box
+    np.testing.assert_allclose(app.scene.face_handles["x+"].position, [0.06, 0, 0])
+    np.testing.assert_allclose(app.scene.face_handles["x-"].position, [-0.06, 0, 0])
+
+
+def test_fit_box_to_points_finds_the_visible_box(app, sequence_root):
+    _, poses = sequence_root
+    position, orientation = poses[0]
+    # start from the true orientation, a box 2 cm too big and 1 cm off
+    app.commit_box(position + [0.01, 0.0, 0.0], orientation, extents=TRUE_EXTENTS + 0.02)
+    app.editing.fit.value = True
+    doc = load_annotation(app.state.path)
+    R = Rotation.from_quat(orientation).as_matrix()
+    fitted = doc.frames["0000001"]
+    # only the faces seen by the camera are sampled: along each axis the fit is no larger than the truth
+    assert np.all(doc.extents <= TRUE_EXTENTS + 0.004)
+    # the box is rotated so that two faces show: at least the up-facing side and one side reach the truth
+    offset = R.T @ (fitted.position - position)
+    assert np.all(np.abs(offset) + doc.extents / 2 <= TRUE_EXTENTS / 2 + 0.004)
+
+
+def test_category_and_symmetry_choice(app):
+    app.editing.category.value = "bottle"
+    doc = load_annotation(app.state.path)
+    assert doc.category == "bottle" and doc.symmetry == "y"
+    app.editing.symmetry.value = "none"
+    assert load_annotation(app.state.path).symmetry == "none"
+    app.editing.upright.value = True  # not symmetric now: refused with a message, nothing saved
+    assert "symmetric" in app.message.content
+    assert app.state.saves == 2
+
+
+def test_accept_reject_and_next_flagged(app):
+    ids = app.sequence.ids
+
+    def change(doc):
+        from sequences.annotation import FramePose
+
+        for k, frame_id in enumerate(ids):
+            doc.frames[frame_id] = FramePose(np.array([0, 0, 0.7]), np.array([1.0, 0, 0, 0]), "tracked", {"flagged": k in (1, 3), "flag_reason": "test"})
+
+    app.state.edit(change)
+    app.tracking.next_flagged.value = True
+    assert app.state.frame == 1
+    app.tracking.accept.value = True
+    doc = load_annotation(app.state.path)
+    assert doc.frames[ids[1]].extra.get("reviewed") == "accepted" and not doc.frames[ids[1]].extra.get("flagged")
+    app.tracking.next_flagged.value = True
+    assert app.state.frame == 3
+    app.tracking.reject.value = True
+    assert ids[3] not in load_annotation(app.state.path).frames
+    app.tracking.next_flagged.value = True
+    assert app.state.frame == 3 and "No flagged" in app.message.content
+
+
+@pytest.mark.skipif(tracking_engine() is None, reason="tracking engine (annotate.tracking) not installed")
+def test_refine_button_moves_a_perturbed_box_towards_the_truth(app, sequence_root):
+    _, poses = sequence_root
+    position, orientation = poses[0]
+    app.state.set_extents(TRUE_EXTENTS)
+    ids = app.sequence.ids
+
+    def truth_elsewhere(doc):
+        from sequences.annotation import FramePose
+
+        for frame_id, (p, q) in zip(ids[1:], poses[1:]):
+            doc.frames[frame_id] = FramePose(np.asarray(p), np.asarray(q), "manual")
+
+    app.state.edit(truth_elsewhere)  # the model of the other frames is right
+    start = position + np.array([0.004, -0.003, 0.003])
+    app.commit_box(start, orientation)
+    app.tracking.refine.value = True
+    doc = load_annotation(app.state.path)
+    refined = doc.frames["0000001"]
+    assert refined.source == "refined"
+    assert np.linalg.norm(refined.position - position) < np.linalg.norm(start - position)
+
+
+def test_box_overlay_and_timeline_images():
+    camera = Camera()
+    image = np.zeros((480, 640, 3), dtype=np.uint8)
+    position = np.array([0.0, 0.0, 1.0])
+    orientation = np.array([0.0, 0.0, 0.0, 1.0])
+    drawn = draw_box(image, camera, position, orientation, [0.2, 0.2, 0.2], width=3)
+    # the middle of the front (-z, nearer) top edge along x lies at v = 239.5 - 525 * 0.1 / 0.9
+    corners = np.array([[-0.1, -0.1, 0.9], [0.1, -0.1, 0.9]])
+    uv, _ = camera.project(corners)
+    u, v = np.round(uv.mean(axis=0)).astype(int)
+    assert tuple(drawn[v, u]) == tuple(AXIS_COLORS[0])
+    assert v == round(239.5 - 525 * 0.1 / 0.9)
+    assert drawn[5, 5].sum() == 0  # far from the box nothing is drawn
+    assert sorted(np.bincount(edge_axes())) == [4, 4, 4] and len(BOX_EDGES) == 12
+    strip = timeline_image(["manual", "tracked", "flagged", "none"], current=2, width=400, height=20)
+    assert strip.shape == (20, 400, 3)
+    for k, status in enumerate(["manual", "tracked", "flagged", "none"]):
+        assert tuple(strip[10, k * 100 + 50]) == STATUS_COLORS[status]
+    assert tuple(strip[0, 250]) == (255, 255, 255) and tuple(strip[0, 50]) == STATUS_COLORS["manual"]
