@@ -1,0 +1,39 @@
+"""Tracking settings: the registration backend, object-scale distances and the review thresholds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .registration import BACKENDS, RegistrationParams
+
+
+@dataclass
+class TrackingConfig:
+    """All lengths in metres, angles in degrees."""
+
+    backend: str = "point_to_plane"  #: one of registration.BACKENDS (chosen by benchmarks/bench_tracking.py)
+    voxel_size: float = 0.003  #: model and frame downsampling
+    stride: int = 2  #: pixel subsampling when reading a frame's points
+    crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
+    extents_slack: float = 0.08  #: the box is grown by this share too (hand-placed extents are off by up to ~8%)
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
+    global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
+    max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
+    symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
+    update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)
+    # review thresholds: a frame outside any of them gets flagged: true and a flag_reason
+    min_fitness: float = 0.5
+    max_inlier_rmse: float = 0.003
+    min_in_box: float = 0.6
+    max_chain_disagreement_deg: float = 5.0
+    max_chain_disagreement_m: float = 0.01
+    max_manual_correction_deg: float = 6.0
+    max_manual_correction_m: float = 0.012
+    min_points: int = 100
+
+    def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ValueError(f"unknown registration backend {self.backend!r}; one of {', '.join(BACKENDS)}")
+        if not self.voxel_size > 0:
+            raise ValueError("voxel_size must be positive")

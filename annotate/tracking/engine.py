@@ -1,0 +1,204 @@
+"""The tracking engine: from a few hand-placed boxes to a pose in every frame (and one-frame refinement).
+
+``track_sequence``:
+1. anchors: the manual frames (in the chosen range);
+2. chains: from every anchor forward and backward to the neighbouring anchors (or the ends),
+   each frame registered to the chain's growing model (propagate.py);
+3. reconcile: between two anchors, the two chains are blended (reconcile.py);
+4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py);
+5. common frame: the consistent poses are moved by the one correction that best fits all the
+   placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
+   axis estimated from the model (symmetry.py);
+6. quality: figures and flags per frame (quality.py).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from sequences.annotation import Annotation, FramePose
+from sequences.reader import Sequence
+
+from .config import TrackingConfig
+from .frames import FrameStore
+from .propagate import run_chain
+from .quality import flag_reasons, in_box_share, pose_difference, rounded
+from .reconcile import blend_chains, common_correction
+from .refine import build_model, min_hits_for, refine_all
+from .symmetry import estimate_symmetry_axis, snap_upright
+from .tracker import FrameResult, Tracker
+
+Progress = Callable[[int, int], None]
+
+
+class _Steps:
+    """Counts work units and reports (done, total) to an optional callback."""
+
+    def __init__(self, total: int, progress: Progress | None) -> None:
+        self.total, self.done, self.progress = total, 0, progress
+
+    def __call__(self) -> None:
+        self.done += 1
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
+def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:
+    ids = sequence.ids
+    if frames is None:
+        return ids
+    wanted = {str(f) for f in frames}
+    unknown = wanted - set(ids)
+    if unknown:
+        raise ValueError(f"frames not in the sequence: {sorted(unknown)[:5]}")
+    return [f for f in ids if f in wanted]
+
+
+def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
+    manual = [f for f in ids if f in annotation.frames and annotation.frames[f].source == "manual"]
+    if manual:
+        return manual
+    return [f for f in ids if f in annotation.frames]
+
+
+def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> np.ndarray | None:
+    """Correction (4x4) putting the box's y on the symmetry axis estimated from the model, or None if unreliable."""
+    model = build_model(tracker, poses, tracker.config.max_global_frames, anchors)
+    points, _ = model.points(min_hits_for(model, tracker.config))
+    try:
+        axis, point, _ = estimate_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
+    except ValueError:
+        return None
+    # a large correction means the fit went wrong (a hand, a partial view), not that the boxes are 10 deg off
+    if np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0 or np.linalg.norm(point) > 0.25 * np.max(tracker.extents):
+        return None
+    return snap_upright(np.eye(4), axis, point)
+
+
+def track_sequence(
+    sequence: Sequence,
+    annotation: Annotation,
+    frames: list[str] | None = None,
+    config: TrackingConfig | None = None,
+    progress: Progress | None = None,
+) -> Annotation:
+    """A new document with a pose for every frame of ``frames`` (default: all), from its manual frames.
+
+    Manual frames keep their placed pose (unless ``config.update_manual``) and ``source: manual``;
+    the others get ``source: tracked`` with quality figures as extra keys, and ``flagged: true``
+    plus ``flag_reason`` where a figure is beyond the configured thresholds. Raises ValueError when
+    the range holds no posed frame.
+    """
+    config = config or TrackingConfig()
+    ids = _ordered_range(sequence, frames)
+    anchors = _anchors(annotation, ids)
+    if not anchors:
+        raise ValueError("no frame in the range has a box: place a box in at least one frame first")
+    symmetric = annotation.symmetry == "y"
+    tracker = Tracker(FrameStore(sequence, config.stride), annotation.extents, symmetric, config)
+    placed = {m: annotation.frames[m].matrix for m in anchors}
+    position = {f: i for i, f in enumerate(ids)}
+    a_idx = [position[m] for m in anchors]
+    chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
+    steps = _Steps(chain_frames + config.global_rounds * len(ids), progress)
+
+    # 2-3: chains and their reconciliation
+    results: dict[str, FrameResult] = {m: FrameResult(placed[m].copy(), True, {}) for m in anchors}
+    if a_idx[0] > 0:
+        results.update(run_chain(tracker, ids[a_idx[0]::-1], placed[anchors[0]], steps))
+    for a, b in zip(a_idx, a_idx[1:]):
+        segment = ids[a : b + 1]
+        forward = run_chain(tracker, segment, placed[ids[a]], steps)
+        backward = run_chain(tracker, segment[::-1], placed[ids[b]], steps)
+        results.update(blend_chains(segment, forward, backward, symmetric))
+    if a_idx[-1] < len(ids) - 1:
+        results.update(run_chain(tracker, ids[a_idx[-1] :], placed[anchors[-1]], steps))
+    results = {f: results[f] for f in ids}
+
+    # 4: joint refinement against the model of all frames
+    results = refine_all(tracker, results, config.global_rounds, anchors, steps)
+
+    # 5: one object frame for all, fitted to the placed boxes
+    poses = {f: r.pose for f, r in results.items()}
+    correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric)
+    poses = {f: p @ correction for f, p in poses.items()}
+    if symmetric and config.symmetry_snap:
+        snap = _snap_symmetric(tracker, poses, anchors)
+        if snap is not None:
+            poses = {f: p @ snap for f, p in poses.items()}
+
+    # 6: the document
+    out = annotation.copy()
+    for frame_id in ids:
+        result = results[frame_id]
+        figures = dict(result.figures)
+        if result.ok:
+            points, _ = tracker.crop(frame_id, poses[frame_id])
+            figures["in_box"] = in_box_share(points, poses[frame_id], tracker.box)
+        if frame_id in placed:
+            deg, metres = pose_difference(placed[frame_id], poses[frame_id], symmetric)
+            figures["manual_correction_deg"] = deg
+            figures["manual_correction_m"] = metres
+        reasons = flag_reasons(figures, config)
+        figures = rounded(figures)
+        figures.pop("error", None)
+        if reasons:
+            figures["flagged"] = True
+            figures["flag_reason"] = "; ".join(reasons)
+        if frame_id in placed and annotation.frames[frame_id].source == "manual":
+            old = annotation.frames[frame_id]
+            extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason")}
+            extra.update(figures)
+            if config.update_manual:
+                new = FramePose.from_matrix(poses[frame_id], "manual", extra)
+            else:
+                new = FramePose(old.position.copy(), old.orientation.copy(), "manual", extra)
+            out.frames[frame_id] = new
+        else:
+            out.frames[frame_id] = FramePose.from_matrix(poses[frame_id], "tracked", figures)
+    return out
+
+
+def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, config: TrackingConfig | None = None) -> FramePose:
+    """Refine one frame's box against its points and the model built from the other posed frames.
+
+    Starts from the frame's own pose, or from the nearest posed frame's when it has none. Returns a
+    FramePose with ``source: refined`` and quality figures (and a flag) in ``extra``. Raises
+    ValueError when the document has no pose to start from.
+    """
+    config = config or TrackingConfig()
+    frame_id = str(frame_id)
+    ids = sequence.ids
+    if frame_id not in ids:
+        raise ValueError(f"frame {frame_id!r} is not in the sequence")
+    others = [f for f in ids if f in annotation.frames and f != frame_id]
+    if frame_id in annotation.frames:
+        start = annotation.frames[frame_id].matrix
+    elif others:
+        here = ids.index(frame_id)
+        start = annotation.frames[min(others, key=lambda f: abs(ids.index(f) - here))].matrix
+    else:
+        raise ValueError("no posed frame to start from: place a box first")
+    symmetric = annotation.symmetry == "y"
+    tracker = Tracker(FrameStore(sequence, config.stride), annotation.extents, symmetric, config)
+    if others:
+        here = ids.index(frame_id)
+        # the nearest posed frames in time see most of what this one sees
+        nearest = sorted(others, key=lambda f: abs(ids.index(f) - here))[: config.max_global_frames // 2]
+        model = build_model(tracker, {f: annotation.frames[f].matrix for f in sorted(nearest, key=ids.index)}, config.max_global_frames)
+        hits = min_hits_for(model, config)
+    else:
+        model = tracker.new_model()
+        tracker.add_to_model(model, frame_id, start)  # alone: a self-consistency check of the placed box
+        hits = 1
+    result = tracker.register(frame_id, start, model, hits)
+    figures = dict(result.figures)
+    reasons = flag_reasons(figures, config)
+    figures = rounded(figures)
+    figures.pop("error", None)
+    if reasons:
+        figures["flagged"] = True
+        figures["flag_reason"] = "; ".join(reasons)
+    return FramePose.from_matrix(result.pose, "refined", figures)

@@ -1,0 +1,110 @@
+"""The accumulated object model: a voxel grid in the object frame (metres), fed frame by frame.
+
+Each voxel keeps the sum of the points and colours that fell in it and the number of frames
+that hit it. A frame counts once per voxel, so ``hits`` says in how many frames a surface was
+seen: the object's surface is seen again and again, while a hand that regrasps moves relative
+to the object and leaves voxels with few hits. :meth:`ObjectModel.target` keeps voxels seen
+in at least ``min_hits`` frames (falling back to all voxels while the model is young).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evaluate.geometry import transform
+
+from .registration import ModelTarget
+
+_OFFSET = 1 << 20  # voxel indices are packed into one int64 key, 21 bits per axis
+
+
+class ObjectModel:
+    """Voxel-downsampled point model of one object in its own frame (ShapeNet axes, box-centred)."""
+
+    def __init__(self, voxel_size: float, extents: np.ndarray | None = None, margin: float = 0.01) -> None:
+        self.voxel_size = float(voxel_size)
+        self.half = None if extents is None else np.asarray(extents, dtype=np.float64) / 2 + margin
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.sum_xyz = np.zeros((0, 3))
+        self.sum_rgb = np.zeros((0, 3))
+        self.count = np.zeros(0, dtype=np.int64)
+        self.hits = np.zeros(0, dtype=np.int64)
+        self.frames = 0
+        self._target: ModelTarget | None = None
+        self._target_key: tuple | None = None
+
+    def copy(self) -> "ObjectModel":
+        other = ObjectModel(self.voxel_size)
+        other.half = self.half
+        other.keys, other.sum_xyz, other.sum_rgb = self.keys.copy(), self.sum_xyz.copy(), self.sum_rgb.copy()
+        other.count, other.hits, other.frames = self.count.copy(), self.hits.copy(), self.frames
+        return other
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def _keys(self, points: np.ndarray) -> np.ndarray:
+        idx = np.floor(points / self.voxel_size).astype(np.int64) + _OFFSET
+        return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
+
+    def add(self, points_obj: np.ndarray, colors: np.ndarray | None = None, weight: int = 1) -> None:
+        """Add one frame's points (N, 3), already in the object frame, with colours (N, 3) in 0..1.
+
+        ``weight`` counts the frame as that many sightings (a trusted frame, e.g. a manual one).
+        """
+        points_obj = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
+        colors = np.zeros_like(points_obj) if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+        keep = np.all(np.isfinite(points_obj), axis=1)
+        if self.half is not None:
+            keep &= np.all(np.abs(points_obj) <= self.half, axis=1)
+        points_obj, colors = points_obj[keep], colors[keep]
+        self.frames += 1
+        if len(points_obj) == 0:
+            return
+        keys, inverse = np.unique(self._keys(points_obj), return_inverse=True)
+        n = len(keys)
+        sxyz = np.zeros((n, 3))
+        np.add.at(sxyz, inverse, points_obj)
+        srgb = np.zeros((n, 3))
+        np.add.at(srgb, inverse, colors)
+        cnt = np.bincount(inverse, minlength=n)
+        all_keys = np.concatenate([self.keys, keys])
+        merged, inv = np.unique(all_keys, return_inverse=True)
+        m = len(merged)
+        new_xyz = np.zeros((m, 3))
+        np.add.at(new_xyz, inv, np.concatenate([self.sum_xyz, sxyz]))
+        new_rgb = np.zeros((m, 3))
+        np.add.at(new_rgb, inv, np.concatenate([self.sum_rgb, srgb]))
+        self.count = np.bincount(inv, weights=np.concatenate([self.count, cnt]), minlength=m).astype(np.int64)
+        self.hits = np.bincount(inv, weights=np.concatenate([self.hits, np.full(n, weight)]), minlength=m).astype(np.int64)
+        self.keys, self.sum_xyz, self.sum_rgb = merged, new_xyz, new_rgb
+
+    def add_frame(self, points_cam: np.ndarray, colors: np.ndarray | None, pose: np.ndarray, weight: int = 1) -> None:
+        """Add camera-frame points seen at ``pose`` (4x4 object to camera)."""
+        R, t = pose[:3, :3], pose[:3, 3]
+        self.add((np.asarray(points_cam) - t) @ R, colors, weight)
+
+    def points(self, min_hits: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Voxel centroids (M, 3) in the object frame and mean colours (M, 3), of voxels hit in >= ``min_hits`` frames."""
+        keep = self.hits >= min_hits
+        count = self.count[keep][:, None].astype(np.float64)
+        return self.sum_xyz[keep] / count, self.sum_rgb[keep] / count
+
+    def target(self, min_hits: int = 1, min_share: float = 0.5) -> ModelTarget:
+        """The registration target, cached until the model changes.
+
+        Uses voxels hit in >= ``min_hits`` frames unless that would keep less than ``min_share``
+        of the voxels (a young model, seen from few frames), then all of them.
+        """
+        key = (len(self.keys), int(self.hits.sum()), min_hits)
+        if self._target is None or self._target_key != key:
+            hits = min_hits if np.count_nonzero(self.hits >= min_hits) >= min_share * len(self.hits) else 1
+            points, colors = self.points(hits)
+            self._target = ModelTarget(points, colors, self.voxel_size)
+            self._target_key = key
+        return self._target
+
+
+def object_points(points_cam: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3) to the object frame of ``pose`` (4x4 object to camera)."""
+    return transform(np.linalg.inv(pose), points_cam)

@@ -1,0 +1,76 @@
+"""Per-frame quality figures and the review flags derived from them.
+
+Figures (stored as extra keys on each tracked frame of the document):
+- ``fitness``: share of the frame's cropped points within the inlier distance of the model;
+- ``inlier_rmse``: RMS distance of those inliers, metres;
+- ``in_box``: share of the points near the box (crop with margin) that lie inside the box;
+- ``chain_disagreement_deg`` / ``chain_disagreement_m``: how far apart the forward and the
+  backward chain put the frame (only between two manual frames);
+- for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
+  is from the pose the rest of the sequence agrees on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray, symmetric: bool = False) -> float:
+    """Angle between two rotations (3x3), degrees; with ``symmetric`` the angle between their y axes."""
+    if symmetric:
+        cos = float(np.clip(Ra[:, 1] @ Rb[:, 1], -1.0, 1.0))
+    else:
+        cos = float(np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0))
+    return float(np.degrees(np.arccos(cos)))
+
+
+def pose_difference(Ta: np.ndarray, Tb: np.ndarray, symmetric: bool = False) -> tuple[float, float]:
+    """(rotation difference in degrees, distance between the box centres in metres) of two 4x4 poses."""
+    return rotation_angle_deg(Ta[:3, :3], Tb[:3, :3], symmetric), float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]))
+
+
+def in_box_share(points_cam: np.ndarray, pose: np.ndarray, extents: np.ndarray) -> float:
+    """Share of camera-frame points (N, 3) inside the box at ``pose`` with full sides ``extents``; 0 when empty."""
+    if len(points_cam) == 0:
+        return 0.0
+    local = (np.asarray(points_cam) - pose[:3, 3]) @ pose[:3, :3]
+    return float(np.mean(np.all(np.abs(local) <= np.asarray(extents) / 2, axis=1)))
+
+
+def flag_reasons(figures: dict, config) -> list[str]:
+    """Reasons a frame needs review, from its figures and the thresholds of a TrackingConfig."""
+    reasons = []
+    if figures.get("error"):
+        reasons.append(str(figures["error"]))
+    if figures.get("points", config.min_points) < config.min_points:
+        reasons.append(f"only {figures['points']} points in the box")
+    if "fitness" in figures and figures["fitness"] < config.min_fitness:
+        reasons.append(f"fitness {figures['fitness']:.2f} < {config.min_fitness}")
+    if "inlier_rmse" in figures and not figures["inlier_rmse"] <= config.max_inlier_rmse:
+        reasons.append(f"inlier RMSE {figures['inlier_rmse'] * 1000:.1f} mm > {config.max_inlier_rmse * 1000:.1f} mm")
+    if "in_box" in figures and figures["in_box"] < config.min_in_box:
+        reasons.append(f"only {figures['in_box']:.0%} of the points near the box are inside it")
+    if figures.get("chain_disagreement_deg", 0.0) > config.max_chain_disagreement_deg:
+        reasons.append(f"forward and backward tracking disagree by {figures['chain_disagreement_deg']:.1f} deg")
+    if figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m:
+        reasons.append(f"forward and backward tracking disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
+    if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
+        reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose")
+    if figures.get("manual_correction_m", 0.0) > config.max_manual_correction_m:
+        reasons.append(f"the placed box is {figures['manual_correction_m'] * 1000:.0f} mm off the tracked pose")
+    return reasons
+
+
+def rounded(figures: dict) -> dict:
+    """Figures rounded for the document (4 significant decimals for shares, 0.1 mm, 0.01 deg)."""
+    out = {}
+    for key, value in figures.items():
+        if isinstance(value, float):
+            if key.endswith("_m") or key == "inlier_rmse":
+                value = round(value, 5) if np.isfinite(value) else None
+            elif key.endswith("_deg"):
+                value = round(value, 2)
+            else:
+                value = round(value, 4)
+        out[key] = value
+    return out

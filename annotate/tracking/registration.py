@@ -1,0 +1,183 @@
+"""Registration backends: a frame's points (camera frame) against the object model (object frame).
+
+Every backend answers the same question: the 4x4 transform ``T_obj_cam`` (camera to object
+coordinates, metres) that best aligns the frame's points onto the model, starting from an
+initial guess. Backends are selected by name (:data:`BACKENDS`):
+
+- ``point_to_plane``: Open3D point-to-plane ICP with a Tukey robust kernel (the hand and
+  background points inside the box are outliers to it), coarse-to-fine.
+- ``colored``: Open3D coloured ICP (Park et al.), geometry plus photometric term.
+- ``generalized``: Open3D generalized ICP (plane-to-plane).
+- ``kiss``: kiss-icp's building blocks (VoxelHashMap + Registration, point-to-point with a
+  Geman-McClure kernel) at object scale.
+
+No backend may take the process down: inputs are validated (finite, enough points, a
+finite initial guess, positive kernel widths, which kiss-icp's Sophus code asserts on),
+outputs are checked for finiteness, and a failure comes back as ``ok=False`` with a reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+#: Below this many points on either side a registration is not attempted (too few to fix 6 DoF robustly).
+MIN_POINTS = 30
+
+
+@dataclass
+class RegistrationResult:
+    """``transform``: 4x4 T_obj_cam; ``fitness``: share of source points within ``max_distance`` of the model;
+    ``inlier_rmse``: RMS distance of those (m); ``ok``: False when the registration could not run or diverged."""
+
+    transform: np.ndarray
+    fitness: float
+    inlier_rmse: float
+    ok: bool = True
+    reason: str = ""
+
+
+class ModelTarget:
+    """The registration target: model points (M, 3) in the object frame with normals and colours, built once.
+
+    Holds the Open3D cloud (with a KD-tree inside the ICP calls) and, lazily, kiss-icp's voxel map.
+    """
+
+    def __init__(self, points: np.ndarray, colors: np.ndarray | None = None, voxel_size: float = 0.003) -> None:
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        finite = np.all(np.isfinite(points), axis=1)
+        self.points = points[finite]
+        self.colors = None if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)[finite]
+        self.voxel_size = float(voxel_size)
+        self.cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        if self.colors is not None:
+            self.cloud.colors = o3d.utility.Vector3dVector(self.colors)
+        if len(self.points) >= 3:
+            # normals from ~4 voxels around each point: object-scale surface patches
+            self.cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * self.voxel_size, max_nn=30))
+        self._kiss_map = None
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def kiss_map(self):
+        if self._kiss_map is None:
+            from kiss_icp.mapping import VoxelHashMap
+
+            # one kiss voxel per model voxel, a few points each; max_distance is a range cut around the origin (object frame)
+            self._kiss_map = VoxelHashMap(voxel_size=self.voxel_size, max_distance=100.0, max_points_per_voxel=4)
+            self._kiss_map.add_points(self.points)
+        return self._kiss_map
+
+
+@dataclass
+class RegistrationParams:
+    """Object-scale ICP parameters (metres)."""
+
+    max_distance: float = 0.01  #: correspondence cut of the coarse stage
+    fine_distance: float = 0.004  #: correspondence cut of the fine stage
+    kernel: float = 0.003  #: robust kernel width (Tukey k, kiss-icp's sigma)
+    iterations: int = 30  #: per stage
+    quality_distance: float = 0.004  #: inlier distance for fitness / RMSE
+
+
+def _evaluate(source: o3d.geometry.PointCloud, target: ModelTarget, transform: np.ndarray, distance: float) -> tuple[float, float]:
+    ev = o3d.pipelines.registration.evaluate_registration(source, target.cloud, distance, transform)
+    return float(ev.fitness), float(ev.inlier_rmse)
+
+
+def _source_cloud(points: np.ndarray, colors: np.ndarray | None) -> o3d.geometry.PointCloud:
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    if colors is not None:
+        cloud.colors = o3d.utility.Vector3dVector(colors)
+    return cloud
+
+
+def _icp_open3d(backend: str, source, target: ModelTarget, init: np.ndarray, params: RegistrationParams, voxel: float) -> np.ndarray:
+    reg = o3d.pipelines.registration
+    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=params.iterations)
+    T = init
+    for distance in (params.max_distance, params.fine_distance):
+        if backend == "point_to_plane":
+            estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max(params.kernel, distance / 2)))
+            T = reg.registration_icp(source, target.cloud, distance, T, estimation, criteria).transformation
+        elif backend == "colored":
+            estimation = reg.TransformationEstimationForColoredICP(lambda_geometric=0.968, kernel=reg.TukeyLoss(k=max(params.kernel, distance / 2)))
+            T = reg.registration_colored_icp(source, target.cloud, distance, T, estimation, criteria).transformation
+        elif backend == "generalized":
+            estimation = reg.TransformationEstimationForGeneralizedICP(epsilon=1e-3, kernel=reg.TukeyLoss(k=max(params.kernel, distance / 2)))
+            T = reg.registration_generalized_icp(source, target.cloud, distance, T, estimation, criteria).transformation
+        else:
+            raise ValueError(backend)
+    return np.asarray(T)
+
+
+def _icp_kiss(points: np.ndarray, target: ModelTarget, init: np.ndarray, params: RegistrationParams) -> np.ndarray:
+    from kiss_icp.registration import Registration
+
+    registration = Registration(max_num_iterations=params.iterations * 2, convergence_criterion=1e-6, max_num_threads=1)
+    T = np.asarray(init, dtype=np.float64)
+    for distance, kernel in ((params.max_distance, max(params.kernel, params.max_distance / 3)), (params.fine_distance, params.kernel)):
+        # kiss-icp asserts (aborts the process) when the kernel is 0 or inputs are NaN: both are excluded by the caller
+        T = np.asarray(registration.align_points_to_map(points, target.kiss_map(), T, float(distance), float(kernel)))
+    return T
+
+
+def _normals_needed(backend: str) -> bool:
+    return backend in ("point_to_plane", "colored")
+
+
+def register(
+    points: np.ndarray,
+    target: ModelTarget,
+    init: np.ndarray,
+    backend: str = "point_to_plane",
+    params: RegistrationParams | None = None,
+    colors: np.ndarray | None = None,
+) -> RegistrationResult:
+    """Align camera-frame ``points`` (N, 3) m (optional ``colors`` (N, 3) in 0..1) to the model.
+
+    ``init`` is the initial T_obj_cam. Never raises on bad geometry: returns ``ok=False`` and the
+    initial transform with a reason (too few points, NaN, diverged).
+    """
+    params = params or RegistrationParams()
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown registration backend {backend!r}; one of {', '.join(BACKENDS)}")
+    init = np.asarray(init, dtype=np.float64)
+    fail = lambda reason: RegistrationResult(init.copy(), 0.0, float("inf"), False, reason)  # noqa: E731
+    if init.shape != (4, 4) or not np.all(np.isfinite(init)):
+        return fail("initial pose is not a finite 4x4 transform")
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(points), axis=1)
+    if colors is not None:
+        colors = np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+        finite &= np.all(np.isfinite(colors), axis=1)
+        colors = colors[finite]
+    points = points[finite]
+    if len(points) < MIN_POINTS:
+        return fail(f"only {len(points)} points in the box")
+    if len(target) < MIN_POINTS:
+        return fail(f"only {len(target)} points in the model")
+    if not (params.kernel > 0 and params.max_distance > 0 and params.fine_distance > 0):
+        return fail("registration distances must be positive")
+    if backend == "colored" and (colors is None or target.colors is None):
+        backend = "point_to_plane"  # no colour on one side: the geometric term alone
+    if _normals_needed(backend) and not target.cloud.has_normals():
+        return fail("model has no normals")
+    source = _source_cloud(points, colors)
+    try:
+        if backend == "kiss":
+            T = _icp_kiss(points, target, init, params)
+        else:
+            T = _icp_open3d(backend, source, target, init, params, target.voxel_size)
+    except RuntimeError as error:  # Open3D raises on degenerate systems (e.g. colored ICP without enough texture)
+        return fail(f"registration failed: {' '.join(str(error).split())}")
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return fail("registration diverged (non-finite transform)")
+    fitness, rmse = _evaluate(source, target, T, params.quality_distance)
+    return RegistrationResult(T, fitness, rmse, True, "")
+
+
+BACKENDS = ("point_to_plane", "colored", "generalized", "kiss")

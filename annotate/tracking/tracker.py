@@ -1,0 +1,72 @@
+"""One frame against one model: crop by the predicted box, register, keep symmetric rotations consistent, measure."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from evaluate.geometry import invert
+
+from .config import TrackingConfig
+from .frames import FrameStore
+from .model import ObjectModel
+from .quality import in_box_share
+from .registration import register
+from .symmetry import closest_about_y
+
+
+@dataclass
+class FrameResult:
+    """A frame's pose (4x4 object to camera), whether registration succeeded, and its quality figures."""
+
+    pose: np.ndarray
+    ok: bool
+    figures: dict = field(default_factory=dict)
+
+
+class Tracker:
+    """Registers frames of one sequence to object models, with one configuration and one box size."""
+
+    def __init__(self, store: FrameStore, extents: np.ndarray, symmetric: bool, config: TrackingConfig) -> None:
+        self.store = store
+        self.config = config
+        self.symmetric = symmetric
+        self.extents = np.asarray(extents, dtype=np.float64)
+        # hand-placed extents are off by several percent: crop and judge with a slightly larger box
+        self.box = self.extents * (1.0 + config.extents_slack)
+
+    def new_model(self) -> ObjectModel:
+        return ObjectModel(self.config.voxel_size, self.box, margin=self.config.voxel_size)
+
+    def crop(self, frame_id: str, pose: np.ndarray, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        margin = self.config.crop_margin if margin is None else margin
+        return self.store.crop(frame_id, pose, self.box, margin, self.config.voxel_size)
+
+    def add_to_model(self, model: ObjectModel, frame_id: str, pose: np.ndarray, weight: int = 1) -> None:
+        points, colors = self.crop(frame_id, pose, margin=0.0)
+        model.add_frame(points, colors, pose, weight)
+
+    def register(self, frame_id: str, init_pose: np.ndarray, model: ObjectModel, min_hits: int = 1) -> FrameResult:
+        """Register a frame to ``model`` starting from ``init_pose`` (4x4); never raises on bad data."""
+        config = self.config
+        points, colors = self.crop(frame_id, init_pose)
+        figures: dict = {"points": int(len(points))}
+        if frame_id in self.store.errors:
+            figures["error"] = self.store.errors[frame_id]
+            return FrameResult(init_pose.copy(), False, figures)
+        if len(points) < config.min_points:
+            figures["error"] = f"only {len(points)} points in the box"
+            return FrameResult(init_pose.copy(), False, figures)
+        target = model.target(min_hits)
+        result = register(points, target, invert(init_pose), config.backend, config.registration, colors)
+        if not result.ok:
+            figures["error"] = result.reason
+            return FrameResult(init_pose.copy(), False, figures)
+        pose = invert(result.transform)
+        if self.symmetric:
+            pose[:3, :3] = closest_about_y(pose[:3, :3], init_pose[:3, :3])
+        figures["fitness"] = result.fitness
+        figures["inlier_rmse"] = result.inlier_rmse
+        figures["in_box"] = in_box_share(points, pose, self.box)
+        return FrameResult(pose, True, figures)
