@@ -1,24 +1,75 @@
-"""``reconstruct-sequence``: carve, mesh, smooth, tight box, masks and REDWOOD75 export."""
+"""``reconstruct-sequence``: carve, mesh, smooth, tight box, masks and REDWOOD75 export.
+
+    reconstruct-sequence SEQ [SEQ ...] [--annotation FILE] --out DIR [--voxel-size M]
+
+Each sequence is reconstructed and exported in turn (see :mod:`reconstruct.export` for what
+lands in DIR). A sequence that fails writes nothing; its error is one line on stderr naming the
+file and the problem, the others go on, and the exit code is 2 if any failed.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
-from sequences.errors import run_cli
+from tqdm import tqdm
+
+from sequences.annotation import annotation_path, load_annotation
+from sequences.errors import EXIT_BAD_INPUT, InputError, run_cli
+from sequences.reader import open_sequence
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="reconstruct-sequence", description="Reconstruct annotated sequences into REDWOOD75-format ground truth.")
     parser.add_argument("sequences", nargs="+", help="sequence folders")
-    parser.add_argument("--annotation", help="annotation document (default: SEQ/annotation.yaml)")
+    parser.add_argument("--annotation", help="annotation document (default: SEQ/annotation.yaml; only with one SEQ)")
     parser.add_argument("--out", required=True, help="output folder (annotations.json and meshes; added to if it exists)")
     parser.add_argument("--voxel-size", type=float, default=0.002, help="voxel size in metres (default 0.002)")
+    parser.add_argument("--smoothing", choices=("taubin", "laplacian", "none"), default="taubin", help="mesh smoothing (default taubin: does not shrink)")
+    parser.add_argument("--no-masks", action="store_true", help="do not render and write the per-frame masks")
     return parser
+
+
+def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_size: float, smoothing: str, masks: bool, bar: tqdm | None = None) -> Path:
+    """Reconstruct and export one sequence; returns the annotations.json path."""
+    from .export import export_redwood
+    from .pipeline import reconstruct_sequence
+
+    sequence = open_sequence(root)
+    annotation = load_annotation(annotation_path(root, annotation_file), default_sequence=sequence.name)
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if bar is not None:
+            bar.set_postfix_str(f"{sequence.name}: {stage} {done}/{total}", refresh=False)
+
+    reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing)
+    progress("export", 0, 1)
+    return export_redwood(reconstruction, sequence, annotation, out, masks=masks)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    raise SystemExit("reconstruct-sequence: not implemented yet")
+    if args.annotation and len(args.sequences) > 1:
+        raise InputError(args.annotation, "--annotation names one document: give a single SEQ with it")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "--out exists and is not a folder")
+    failed = 0
+    bar = tqdm(args.sequences, desc="reconstruct", unit="seq", file=sys.stderr, disable=None)
+    for root in bar:
+        try:
+            reconstruct_one(root, args.annotation, out, args.voxel_size, args.smoothing, not args.no_masks, bar)
+        except InputError as error:
+            failed += 1
+            tqdm.write(f"error: {error}", file=sys.stderr)
+        except Exception as error:  # one bad sequence must not stop the others; say which one
+            failed += 1
+            tqdm.write(f"error: {root}: {error.__class__.__name__}: {' '.join(str(error).split())}", file=sys.stderr)
+    bar.close()
+    done = len(args.sequences) - failed
+    print(f"{done} of {len(args.sequences)} sequence(s) written to {out}", file=sys.stderr)
+    return EXIT_BAD_INPUT if failed else 0
 
 
 def entry() -> None:

@@ -1,0 +1,143 @@
+"""REDWOOD75-format export: ``OUT/annotations.json``, ``OUT/<sequence>.obj``, masks and report.
+
+Layout written (``OUT`` may already hold other sequences; this sequence's entries are added or
+replaced, the rest kept):
+
+- ``OUT/annotations.json``: ``{sequence: {category, mesh, scale, pose_anns: [{position,
+  orientation, rgb_file, depth_file}]}}`` exactly as REDWOOD75 (cpas_toolbox's
+  ``AnnotatedRedwoodDataset`` reads it): REDWOOD75's raw object axes (raw x = ShapeNet z,
+  raw y = -ShapeNet y, raw z = ShapeNet x), ``scale`` = HALF extents in raw axes, positions in
+  the OpenCV camera frame (metres), orientation quaternion x, y, z, w (object to camera).
+- ``OUT/<sequence>.obj``: the mesh, raw axes, metres, centred on its tight box.
+- ``OUT/masks/<sequence>/<frame id>.png``: instance masks, uint8 0 / 255 (see :mod:`reconstruct.masks`).
+- ``OUT/reports/<sequence>.json`` and ``OUT/reports/<sequence>.png``: report and preview.
+
+Every file is written atomically (temporary name, then rename); ``annotations.json`` last, so a
+sequence is listed only once its mesh is in place.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from evaluate.geometry import matrix_to_quat, shapenet_to_raw_extents, shapenet_to_raw_points, shapenet_to_raw_pose
+from sequences.annotation import Annotation
+from sequences.atomic import write_bytes_atomic, write_text_atomic
+from sequences.errors import InputError
+from sequences.reader import Sequence
+
+from .masks import mask_png_bytes, render_masks
+from .pipeline import Reconstruction
+from .report import preview_png_bytes, report_json
+
+ANNOTATIONS = "annotations.json"
+
+
+def raw_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh in REDWOOD75's raw axes (a proper rotation: the winding stays outward)."""
+    return trimesh.Trimesh(shapenet_to_raw_points(mesh.vertices), mesh.faces.copy(), process=False)
+
+
+def obj_text(mesh: trimesh.Trimesh, name: str) -> str:
+    """OBJ text (vertices and faces only) of a mesh already in raw axes."""
+    return trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_color=False, include_texture=False, header=f"{name}: reconstruct-sequence (REDWOOD75 raw axes, metres)")
+
+
+def sequence_entry(reconstruction: Reconstruction, sequence: Sequence) -> dict:
+    """The ``annotations.json`` entry of one sequence (REDWOOD75 raw axes)."""
+    pose_anns = []
+    for frame_id in sorted(reconstruction.poses, key=sequence.index):
+        files = sequence.frames[sequence.index(frame_id)]
+        T = shapenet_to_raw_pose(reconstruction.poses[frame_id])
+        pose_anns.append(
+            {
+                "position": [float(x) for x in T[:3, 3]],
+                "orientation": [float(x) for x in matrix_to_quat(T[:3, :3])],
+                "rgb_file": files.color_path.name,
+                "depth_file": files.depth_path.name,
+            }
+        )
+    return {
+        "scale": [float(x) for x in shapenet_to_raw_extents(reconstruction.extents) / 2],
+        "pose_anns": pose_anns,
+        "mesh": f"{reconstruction.sequence}.obj",
+        "category": reconstruction.category,
+    }
+
+
+def read_annotations(path: Path) -> dict:
+    """An existing ``annotations.json`` (empty when absent); raises InputError when it is not one."""
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(path, f"existing annotations file is unreadable ({' '.join(str(error).split())}); not overwriting it") from error
+    if not isinstance(data, dict):
+        raise InputError(path, "existing annotations file is not a mapping of sequences; not overwriting it")
+    return data
+
+
+def _replace_folder(folder: Path, files: dict[str, bytes]) -> None:
+    """Write ``files`` into a fresh temporary folder, then swap it in for ``folder``."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        for name, data in files.items():
+            (tmp / name).write_bytes(data)
+        old = None
+        if folder.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+            os.rmdir(old)
+            os.replace(folder, old)
+        os.replace(tmp, folder)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotation: Annotation, out_dir: str | Path, masks: bool = True) -> Path:
+    """Write one reconstruction into ``out_dir`` (see the module docstring); returns ``annotations.json``'s path.
+
+    Everything is computed first (masks rendered, existing ``annotations.json`` read and checked),
+    then written; a failure before the writes leaves ``out_dir`` untouched.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(out_dir, "output path exists and is not a folder")
+    annotations_path = out_dir / ANNOTATIONS
+    existing = read_annotations(annotations_path)
+    name = reconstruction.sequence
+    entry = sequence_entry(reconstruction, sequence)
+    obj = obj_text(raw_mesh(reconstruction.mesh), name)
+    mask_files: dict[str, bytes] = {}
+    frame_masks: dict[str, np.ndarray] = {}
+    if masks:
+        frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
+        mask_files = {f"{frame_id}.png": mask_png_bytes(m) for frame_id, m in frame_masks.items()}
+    report = dict(reconstruction.report)
+    report["masks"] = f"masks/{name}/" if masks else None
+    report["mesh_file"] = f"{name}.obj"
+    if sequence.camera.K.tolist() != [[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]]:
+        report["warning"] = "camera differs from REDWOOD75's (fx = fy = 525, cx = 319.5, cy = 239.5), which cpas_toolbox assumes"
+    preview = preview_png_bytes(reconstruction, sequence, frame_masks)
+
+    if masks:
+        _replace_folder(out_dir / "masks" / name, mask_files)
+    write_text_atomic(out_dir / entry["mesh"], obj)
+    write_text_atomic(out_dir / "reports" / f"{name}.json", report_json(report))
+    write_bytes_atomic(out_dir / "reports" / f"{name}.png", preview)
+    # re-read just before the merge: another sequence may have been added meanwhile
+    merged = read_annotations(annotations_path) or existing
+    merged[name] = entry
+    write_text_atomic(annotations_path, json.dumps(merged, indent=1))
+    return annotations_path

@@ -1,0 +1,163 @@
+"""One sequence from posed frames to a mesh: carve, mesh, smooth, tight box (no files written).
+
+Public entry point :func:`reconstruct_sequence` (the browser app and ``reconstruct-sequence``
+call it); :func:`reconstruct.export.export_redwood` writes the result.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from sequences.annotation import Annotation, annotation_path
+from sequences.errors import InputError
+from sequences.reader import Sequence
+
+from . import carving, meshing
+from .tight_box import fit_tight_box
+
+#: progress(stage, done, total): called as frames are carved and at each stage.
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass
+class Reconstruction:
+    """A reconstructed object.
+
+    ``mesh``: object frame, ShapeNet axes, metres, centred on its tight box. ``extents``: full
+    sides of that box (x, y, z). ``poses``: frame id -> 4x4 object-to-camera transform of the
+    re-centred object. ``timings``: seconds per stage. ``report``: plain figures (JSON-able).
+    """
+
+    sequence: str
+    category: str
+    symmetry: str
+    mesh: trimesh.Trimesh
+    extents: np.ndarray
+    poses: dict[str, np.ndarray]
+    timings: dict[str, float]
+    report: dict
+    centre_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # tight-box centre in the annotated object frame
+    voxel_size: float = 0.002
+
+
+def select_frames(sequence: Sequence, annotation: Annotation, frames: list[str] | None, source: str) -> list[str]:
+    """Frame ids to carve with: those of ``frames`` (or every frame with a pose) that the sequence holds."""
+    if frames is None:
+        chosen = [f for f in sequence.ids if f in annotation.frames]
+    else:
+        chosen = [str(f) for f in frames]
+        missing = [f for f in chosen if f not in annotation.frames]
+        if missing:
+            raise InputError(source, f"frame(s) {', '.join(missing[:5])} have no pose in the annotation")
+        unknown = [f for f in chosen if f not in sequence._index]
+        if unknown:
+            raise InputError(sequence.root, f"frame(s) {', '.join(unknown[:5])} are not in the sequence")
+    if not chosen:
+        raise InputError(source, f"no frame of {sequence.root} has a pose: nothing to carve")
+    return chosen
+
+
+def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarray]) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """Depth images in order, decoded one ahead on a worker thread (PNG decoding overlaps carving)."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = pool.submit(sequence.depth, ids[0])
+        for i, frame_id in enumerate(ids):
+            depth = pending.result()
+            if i + 1 < len(ids):
+                pending = pool.submit(sequence.depth, ids[i + 1])
+            yield frame_id, depth, poses[frame_id]
+
+
+def reconstruct_sequence(
+    sequence: Sequence,
+    annotation: Annotation,
+    voxel_size: float = 0.002,
+    frames: list[str] | None = None,
+    progress: Progress | None = None,
+    *,
+    margin: float | None = None,
+    k: int | None = None,
+    tol_sigmas: float = carving.DEFAULT_TOL_SIGMAS,
+    smoothing: str = "taubin",
+    smoothing_iterations: int = 10,
+) -> Reconstruction:
+    """Carve, mesh, smooth and fit the tight box of one annotated sequence.
+
+    Uses every frame with a pose (or ``frames``); ``voxel_size`` and ``margin`` (per side, around
+    the annotated box) in metres; ``k`` votes threshold (default :func:`carving.choose_k`).
+    """
+    source = str(annotation_path(sequence.root))
+    if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
+        raise InputError(source, f"voxel size {voxel_size} m is outside 0.0002 .. 0.05 m")
+    timings: dict[str, float] = {}
+    ids = select_frames(sequence, annotation, frames, source)
+    poses = {f: annotation.frames[f].matrix for f in ids}
+    say = progress or (lambda stage, done, total: None)
+
+    start = time.perf_counter()
+    grid = carving.make_grid(annotation.extents, voxel_size, margin)
+    if grid.size > 60_000_000:
+        raise InputError(source, f"voxel grid of {grid.shape} is too large: raise --voxel-size or check the extents")
+    k_votes = carving.choose_k(len(ids)) if k is None else int(k)
+    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, progress=lambda done: say("carve", done, len(ids)))
+    timings["carve"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    counts = result.free_count
+    if annotation.symmetry == "y":
+        counts = carving.revolve_free_count(result)
+    occupied = counts <= k_votes
+    timings["symmetry"] = time.perf_counter() - start
+    say("mesh", 0, 1)
+    start = time.perf_counter()
+    try:
+        mesh = meshing.occupancy_mesh(occupied, grid, smoothing, smoothing_iterations)
+    except ValueError as error:
+        raise InputError(source, f"carving left no object ({error}); check the poses and extents") from error
+    timings["mesh"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    mesh, new_poses, centre, extents = fit_tight_box(mesh, poses)
+    timings["tight_box"] = time.perf_counter() - start
+    say("mesh", 1, 1)
+
+    solid_voxels = int(meshing.largest_component(occupied).sum())
+    report = {
+        "sequence": annotation.sequence or sequence.name,
+        "category": annotation.category,
+        "symmetry": annotation.symmetry,
+        "frames_used": len(ids),
+        "frame_ids": ids,
+        "voxel_size": voxel_size,
+        "grid_shape": list(grid.shape),
+        "voxels": grid.size,
+        "voxels_occupied": solid_voxels,
+        "projections": result.projections,
+        "k": k_votes,
+        "annotated_extents": [float(x) for x in annotation.extents],
+        "extents": [float(x) for x in extents],
+        "centre_shift": [float(x) for x in centre],
+        "mesh_vertices": int(len(mesh.vertices)),
+        "mesh_faces": int(len(mesh.faces)),
+        "watertight": bool(mesh.is_watertight),
+        "volume": float(mesh.volume),
+        "timings": timings,
+    }
+    return Reconstruction(
+        sequence=annotation.sequence or sequence.name,
+        category=annotation.category,
+        symmetry=annotation.symmetry,
+        mesh=mesh,
+        extents=extents,
+        poses=new_poses,
+        timings=timings,
+        report=report,
+        centre_shift=centre,
+        voxel_size=voxel_size,
+    )
