@@ -1,0 +1,132 @@
+"""Writing a whole synthetic sequence: object, trajectory, hand, scene, sensor, truth; atomically.
+
+Everything is drawn from ``seed`` through named random streams (shape, motion, layout, grasps,
+appearance, timing, and one per frame), so a sequence is byte-for-byte reproducible and a frame's
+noise does not depend on the others. The sequence is written to a hidden temporary folder next to
+``out`` and renamed onto ``out`` at the end: ``out`` is never half-written.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from PIL import Image
+
+from ..annotation import CATEGORIES, default_symmetry
+from ..camera import Camera
+from ..errors import InputError
+from .motion import GraspPlanner, hand_states, object_trajectory, plan_grasps
+from .primitives import Part, vertex_normals
+from .render import render
+from .scene import OBJECT, background_parts, elbow_at, hand_parts, make_layout, person_parts
+from .sensor import color_image, depth_measurement, object_style, scene_albedo
+from .shapes import MESH_AXES, PROCEDURAL_CATEGORIES, load_mesh, procedural_mesh
+from .truth import TRUTH_DIR, write_mask, write_truth
+
+GENERATOR_VERSION = 1
+#: Colour frame period (29.97 Hz) and the depth frame's lag behind colour (Redwood: a few ms), microseconds.
+FRAME_PERIOD_US = 33_367
+DEPTH_LAG_US = (1_500, 4_500)
+JPEG_QUALITY = 92
+# Named random streams: np.random.default_rng([seed, STREAM]) (frames use FRAME_STREAM + index)
+SHAPE, MOTION, LAYOUT, GRASPS, STYLE, TIMING, FRAME_STREAM = 1, 2, 3, 4, 5, 6, 1000
+
+
+def _rng(seed: int, stream: int) -> np.random.Generator:
+    return np.random.default_rng([seed, stream])
+
+
+def check_arguments(out: Path, category: str, frames: int, mesh: str | Path | None, mesh_axes: str) -> None:
+    """Refuse bad arguments before any work: an existing non-empty OUT, a bad category, frame count or axes."""
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "output exists and is not an empty folder; choose a new folder (nothing was written)")
+    allowed = CATEGORIES if mesh is not None else PROCEDURAL_CATEGORIES
+    if category not in allowed:
+        hint = "" if mesh is not None or category not in CATEGORIES else " without --mesh"
+        raise InputError(out, f"category {category!r} is not one of {', '.join(allowed)}{hint}")
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+        raise InputError(out, f"frames must be a positive integer, got {frames!r}")
+    if mesh_axes not in MESH_AXES:
+        raise InputError(mesh if mesh is not None else out, f"mesh axes {mesh_axes!r} are not one of {', '.join(MESH_AXES)}")
+
+
+def frame_names(frames: int, seed: int) -> list[tuple[str, str, str]]:
+    """(frame id, colour file stem, depth file stem) per frame: Redwood names, depth numbered one ahead, a few ms later."""
+    rng = _rng(seed, TIMING)
+    start = int(rng.integers(1_000_000, 9_000_000))
+    colour_time = start + np.arange(frames) * FRAME_PERIOD_US + rng.integers(-400, 400, frames)
+    depth_time = colour_time + rng.integers(*DEPTH_LAG_US, frames)
+    return [(f"{i + 1:07d}", f"{i + 1:07d}-{tc:012d}", f"{i + 2:07d}-{td:012d}") for i, (tc, td) in enumerate(zip(colour_time, depth_time))]
+
+
+def generate_sequence(out: str | Path, category: str, frames: int = 100, seed: int = 0, mesh: str | Path | None = None,
+                      mesh_axes: str = "shapenet", camera: Camera | None = None, progress: bool = False) -> Path:
+    """Write a synthetic Redwood-layout sequence with its truth to ``out``; returns ``out``.
+
+    ``mesh`` (any file trimesh reads; REDWOOD75 raw axes with ``mesh_axes="redwood75"``) replaces
+    the procedural shape of ``category``. Raises InputError for an existing non-empty ``out``, an
+    unknown category, a bad frame count, or an unreadable mesh.
+    """
+    out = Path(out)
+    camera = camera or Camera()
+    check_arguments(out, category, frames, mesh, mesh_axes)
+    obj = load_mesh(mesh, mesh_axes) if mesh is not None else procedural_mesh(category, _rng(seed, SHAPE))
+    obj = trimesh.Trimesh(np.asarray(obj.vertices, np.float64), np.asarray(obj.faces, np.int64), process=False)
+    symmetry = default_symmetry(category)
+
+    trajectory = object_trajectory(frames, _rng(seed, MOTION))
+    layout = make_layout(trajectory.positions.mean(axis=0), _rng(seed, LAYOUT))
+    planner = GraspPlanner(obj, _rng(seed, GRASPS))
+    grasps = plan_grasps(frames, trajectory, planner, layout.elbow)
+    hands = hand_states(frames, grasps)
+    style = object_style(_rng(seed, STYLE), float(obj.extents[1]))
+    object_part = Part(np.asarray(obj.vertices), np.asarray(obj.faces), vertex_normals(np.asarray(obj.vertices), np.asarray(obj.faces)), OBJECT)
+    background = background_parts(layout)
+    names = frame_names(frames, seed)
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        for sub in ("rgb", "depth", f"{TRUTH_DIR}/masks"):
+            (tmp / sub).mkdir(parents=True)
+        poses: dict[str, np.ndarray] = {}
+        started = time.perf_counter()
+        for i, (frame_id, colour_stem, depth_stem) in enumerate(names):  # one render per frame
+            T = trajectory.pose(i)
+            elbow = elbow_at(layout, T[:3, 3])
+            parts = [object_part.transformed(T), hand_parts(hands[i], T, elbow), *person_parts(layout, elbow), *background]
+            result = render(parts, camera)
+            rng = _rng(seed, FRAME_STREAM + i)
+            depth = depth_measurement(result, rng)
+            colour = color_image(result, scene_albedo(result, T, style, layout), layout.light, rng)
+            Image.fromarray(colour).save(tmp / "rgb" / f"{colour_stem}.jpg", quality=JPEG_QUALITY)
+            Image.fromarray(depth).save(tmp / "depth" / f"{depth_stem}.png", compress_level=3)
+            write_mask(tmp, frame_id, result.label == OBJECT)
+            poses[frame_id] = T
+            if progress:
+                print(f"\rframe {i + 1}/{frames} ({(time.perf_counter() - started) / (i + 1):.2f} s/frame)", end="", flush=True)
+        if progress:
+            print()
+        notes = {
+            "generator": f"sequences.synth v{GENERATOR_VERSION}",
+            "seed": int(seed),
+            "mesh_source": str(mesh) if mesh is not None else f"procedural {category}",
+            "camera": camera.to_dict(),
+            "hand": {frame_id: {"holding": bool(h.holding), "grasp": int(h.grasp)} for (frame_id, _, _), h in zip(names, hands)},
+            "grasps": [{"contact": [float(x) for x in g.contact], "first": names[g.first][0], "last": names[g.last][0]} for g in grasps],
+        }
+        write_truth(tmp, category, symmetry, obj, poses, notes)
+        try:
+            os.rename(tmp, out)  # onto a missing or empty folder; atomic
+        except OSError as error:
+            raise InputError(out, f"output appeared while generating and is not empty ({error.strerror}); nothing was written") from error
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

@@ -1,0 +1,285 @@
+"""The object's hand-held trajectory and the hand's grasps, over the frames of a sequence.
+
+The object (ShapeNet frame) is carried through all orientations: its y axis starts pointing up
+(camera -y), then alternately to a side (camera +-x, or toward / away from the camera) and down
+(camera +y), with random spins about its own axis, interpolated by a C2 rotation spline (about
+90 degrees per key, one key every ~18 frames: a few degrees per frame). Its centre drifts smoothly
+0.5-0.85 m in front of the camera.
+
+A hand holds the object by a grasp fixed in the object frame (palm on the surface, fingers wrapped
+on it), releases it, moves around it and grasps elsewhere (at least one regrasp per sequence).
+Frames: camera OpenCV (x right, y down, z forward), metres; poses map object to camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import trimesh
+from scipy.spatial.transform import Rotation, RotationSpline
+
+#: Frames per 90-degree key of the orientation path (about 5 degrees per frame).
+FRAMES_PER_KEY = 18
+#: Frames per grasp before the hand regrasps.
+FRAMES_PER_GRASP = 60
+#: Hand dimensions, metres: palm semi-axes (across, along the fingers, thickness), finger and thumb radii.
+PALM = np.array([0.042, 0.046, 0.013])
+FINGER_RADIUS = 0.0085
+THUMB_RADIUS = 0.0100
+FOREARM_RADIUS = 0.030
+#: Wrist in the hand frame (behind the palm, opposite the fingers).
+WRIST = np.array([0.0, -0.060, 0.006])
+RETRACT = 0.08  # how far the open hand backs off the surface between grasps, metres
+
+
+@dataclass
+class Trajectory:
+    """Object-to-camera rotations (N, 3, 3) and positions (N, 3) of the object's box centre."""
+
+    rotations: np.ndarray
+    positions: np.ndarray
+
+    def pose(self, i: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.rotations[i]
+        T[:3, 3] = self.positions[i]
+        return T
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _align(a: np.ndarray, b: np.ndarray) -> Rotation:
+    """The smallest rotation taking unit vector a to unit vector b."""
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(np.dot(a, b))
+    if s < 1e-9:
+        if c > 0:
+            return Rotation.identity()
+        other = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 0, 1.0])
+        return Rotation.from_rotvec(_unit(np.cross(a, other)) * np.pi)
+    return Rotation.from_rotvec(axis / s * np.arctan2(s, c))
+
+
+def object_trajectory(frames: int, rng: np.random.Generator) -> Trajectory:
+    """A smooth hand-held trajectory visiting up, down and sideways orientations of the object's y axis."""
+    keys = max(4, int(round(frames / FRAMES_PER_KEY)))
+    up, down = np.array([0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    sides = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, -1.0], [0, 0, 1.0]])
+    # upright, handle (object +z) toward the camera, then a random spin about the object's y axis
+    start = Rotation.from_matrix(np.diag([1.0, -1.0, -1.0])) * Rotation.from_rotvec([0, rng.uniform(-np.pi, np.pi), 0])
+    start = Rotation.from_rotvec(rng.normal(0, 0.15, 3)) * start
+    rotations = [start]
+    for k in range(1, keys + 1):
+        if k % 2:
+            target = sides[rng.integers(len(sides))]
+        else:
+            target = down if (k // 2) % 2 else up
+        target = _unit(target + rng.normal(0, 0.2, 3))
+        previous = rotations[-1]
+        y_now = previous.apply([0.0, 1.0, 0.0])
+        spin = Rotation.from_rotvec([0.0, rng.uniform(-1.6, 1.6), 0.0])
+        rotations.append(_align(y_now, target) * previous * spin)
+    times = np.linspace(0.0, 1.0, keys + 1)
+    times[1:-1] += rng.uniform(-0.25, 0.25, keys - 1) / keys
+    s = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
+    R = RotationSpline(times, Rotation.concatenate(rotations))(s).as_matrix()
+
+    # centre: a base point plus two sinusoids per axis; amplitudes keep it 0.5-0.85 m away and in view
+    base = np.array([rng.uniform(-0.04, 0.04), rng.uniform(-0.03, 0.04), rng.uniform(0.58, 0.74)])
+    amplitude = np.array([0.05, 0.035, 0.08])
+    cycles = max(1.0, keys / 4)
+    phase = rng.uniform(0, 2 * np.pi, (2, 3))
+    freq = rng.uniform(0.5, 1.0, (2, 3)) * cycles
+    offset = 0.6 * np.sin(2 * np.pi * freq[0] * s[:, None] + phase[0]) + 0.4 * np.sin(2 * np.pi * freq[1] * s[:, None] + phase[1])
+    positions = base + amplitude * offset
+    return Trajectory(R, positions)
+
+
+@dataclass
+class Grasp:
+    """A grasp: the hand frame in the object frame and the finger chains (wrapped on the surface) in the hand frame.
+
+    Hand frame: origin at the palm centre, +y along the fingers, +z out of the back of the hand
+    (the palm's inside touches the object at z = -PALM[2]).
+    """
+
+    contact: np.ndarray  # (3,) object frame
+    hand_in_object: np.ndarray  # (4, 4)
+    wrapped: np.ndarray  # (5, 4, 3) chains in the hand frame: 4 fingers + thumb, 4 joints each
+    first: int  # first frame held
+    last: int  # last frame held
+
+
+def open_hand() -> np.ndarray:
+    """(5, 4, 3) finger chains of a relaxed open hand in the hand frame (fingers slightly curled)."""
+    offsets = np.array([0.030, 0.010, -0.010, -0.030])  # across the palm
+    lengths = np.array([0.075, 0.082, 0.077, 0.062])
+    steps = np.array([0.0, 0.45, 0.75, 1.0])
+    along = PALM[1] * 0.85 + lengths[:, None] * steps[None]
+    curl = -0.25 * (along - along[:, :1])
+    fingers = np.stack([np.broadcast_to(offsets[:, None], along.shape), along, curl - 0.004], -1)
+    thumb_dir = _unit(np.array([-0.75, 0.55, -0.35]))
+    thumb = np.array([-PALM[0] * 0.9, -0.01, -0.006]) + np.array([0.0, 0.035, 0.062, 0.085])[:, None] * thumb_dir
+    return np.concatenate([fingers, thumb[None]], axis=0)
+
+
+class GraspPlanner:
+    """Chooses grasp points on the object's surface and wraps the fingers on it (closest-point queries)."""
+
+    def __init__(self, mesh: trimesh.Trimesh, rng: np.random.Generator) -> None:
+        self.mesh = mesh
+        self.rng = rng
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        # area-weighted surface samples with their face normals (seeded, so grasps are deterministic)
+        area = np.asarray(mesh.area_faces, dtype=np.float64)
+        face = rng.choice(len(area), size=600, p=area / area.sum())
+        uv = rng.random((600, 2))
+        flip = uv.sum(1) > 1
+        uv[flip] = 1 - uv[flip]
+        tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[face]]
+        self.samples = tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
+        self.sample_normals = np.asarray(mesh.face_normals)[face]
+        self.diagonal = float(np.linalg.norm(mesh.extents))
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest surface points (N, 3) and their face normals (N, 3), object frame."""
+        answer = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+        return answer["points"].numpy().astype(np.float64), answer["primitive_normals"].numpy().astype(np.float64)
+
+    def plan(self, rotation: np.ndarray, position: np.ndarray, elbow: np.ndarray, avoid: list[np.ndarray], first: int, last: int) -> Grasp:
+        """A grasp held over frames first..last, chosen at the object pose (rotation, position) of its middle frame.
+
+        The palm goes on the side facing the elbow (so the forearm reaches it from behind or the
+        side), away from earlier contacts in ``avoid``; the fingers wrap around and occlude the front.
+        """
+        to_elbow = _unit(elbow - position)
+        view = _unit(position)
+        lateral = _unit(to_elbow - (to_elbow @ view) * view)
+        normals_cam = self.sample_normals @ rotation.T
+        # palm on the side toward the elbow, slightly behind: the fingers then wrap over the front
+        score = normals_cam @ lateral - 1.5 * np.abs(normals_cam @ view - 0.25) + self.rng.uniform(0.0, 0.5, len(self.samples))
+        for previous in avoid:
+            near = np.linalg.norm(self.samples - previous, axis=1) < 0.45 * self.diagonal
+            score = score - 3.0 * near
+        pick = int(np.argmax(score))
+        contact, normal = self.samples[pick], _unit(self.sample_normals[pick])
+        # fingers wrap around the object's y axis when the palm is on the side, else across x
+        around = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.85 else np.array([1.0, 0.0, 0.0])
+        fingers = _unit(np.cross(normal, around))
+        if (rotation @ fingers) @ to_elbow > 0:  # the wrist (behind the fingers) points toward the elbow
+            fingers = -fingers
+        across = np.cross(fingers, normal)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([across, fingers, normal], axis=1)
+        T[:3, 3] = contact + normal * PALM[2]
+        chains = open_hand()
+        radius = np.array([FINGER_RADIUS] * 4 + [THUMB_RADIUS])[:, None, None]
+        points_obj = chains.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+        near, near_n = self.closest(points_obj)
+        near_n = _unit(near_n)
+        # keep the outward side: a normal facing away from the query point belongs to the far wall
+        facing = np.sign(np.einsum("ij,ij->i", points_obj - near, near_n))
+        facing[facing == 0] = 1.0
+        wrapped_obj = near.reshape(5, 4, 3) + (near_n * facing[:, None]).reshape(5, 4, 3) * radius
+        wrapped = (wrapped_obj.reshape(-1, 3) - T[:3, 3]) @ T[:3, :3]
+        # the finger bases stay on the palm edge: only the joints beyond them wrap
+        wrapped = wrapped.reshape(5, 4, 3)
+        wrapped[:, 0] = chains[:, 0]
+        return Grasp(contact, T, wrapped, first, last)
+
+
+@dataclass
+class HandState:
+    """The hand at one frame: its frame in the object frame, finger chains in the hand frame, and whether it holds."""
+
+    hand_in_object: np.ndarray  # (4, 4)
+    chains: np.ndarray  # (5, 4, 3)
+    holding: bool
+    grasp: int  # index of the current (or, while moving, the next) grasp
+
+
+def _smoothstep(x: np.ndarray | float) -> np.ndarray | float:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def _offset(T: np.ndarray, distance: float) -> np.ndarray:
+    out = T.copy()
+    out[:3, 3] += T[:3, 2] * distance  # back off along the hand's +z (out of the surface)
+    return out
+
+
+def _interpolate(A: np.ndarray, B: np.ndarray, u: float) -> np.ndarray:
+    """Hand frame between A and B: rotation by slerp, position around the object (not through it)."""
+    rot = Rotation.from_matrix(np.stack([A[:3, :3], B[:3, :3]]))
+    R = (rot[0] * Rotation.from_rotvec((rot[0].inv() * rot[1]).as_rotvec() * u)).as_matrix()
+    a, b = A[:3, 3], B[:3, 3]
+    ra, rb = np.linalg.norm(a), np.linalg.norm(b)
+    da, db = a / ra, b / rb
+    angle = np.arccos(np.clip(da @ db, -1, 1))
+    if angle < 1e-6:
+        direction = da
+    elif angle > np.pi - 1e-3:  # opposite sides: go around through any perpendicular
+        perpendicular = _unit(np.cross(da, [0.0, 1.0, 0.0] if abs(da[1]) < 0.9 else [1.0, 0.0, 0.0]))
+        direction = np.cos(angle * u) * da + np.sin(angle * u) * perpendicular
+    else:
+        direction = (np.sin((1 - u) * angle) * da + np.sin(u * angle) * db) / np.sin(angle)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = direction * ((1 - u) * ra + u * rb)
+    return T
+
+
+def plan_grasps(frames: int, trajectory: Trajectory, planner: GraspPlanner, elbow: np.ndarray) -> list[Grasp]:
+    """Grasps over the sequence: one per ~FRAMES_PER_GRASP frames, at least two (one regrasp).
+
+    Between grasps a window of frames (15% of a grasp period, at least one frame) has the hand
+    releasing, moving and re-approaching.
+    """
+    count = max(2, 1 + frames // FRAMES_PER_GRASP)
+    window = max(1, int(round(0.15 * frames / count)))
+    edges = np.linspace(0, frames, count + 1)
+    grasps: list[Grasp] = []
+    for k in range(count):
+        first = 0 if k == 0 else int(round(edges[k])) + window // 2 + window % 2
+        last = frames - 1 if k == count - 1 else int(round(edges[k + 1])) - window // 2 - 1
+        first, last = min(first, frames - 1), max(min(last, frames - 1), min(first, frames - 1))
+        middle = (first + last) // 2
+        grasps.append(planner.plan(trajectory.rotations[middle], trajectory.positions[middle], elbow, [g.contact for g in grasps], first, last))
+    return grasps
+
+
+def hand_states(frames: int, grasps: list[Grasp]) -> list[HandState]:
+    """The hand at every frame: holding within a grasp, else releasing / moving / re-approaching."""
+    relaxed = open_hand()
+    states = []
+    for i in range(frames):  # per frame, a handful of 4x4 operations
+        current = next((k for k, g in enumerate(grasps) if g.first <= i <= g.last), None)
+        if current is not None:
+            g = grasps[current]
+            states.append(HandState(g.hand_in_object, g.wrapped, True, current))
+            continue
+        after = next(k for k, g in enumerate(grasps) if g.first > i)
+        A, B = grasps[after - 1], grasps[after]
+        u = (i - A.last) / (B.first - A.last)
+        if u < 0.35:
+            opening = _smoothstep(u / 0.35)
+            T = _offset(A.hand_in_object, RETRACT * opening)
+            chains = (1 - opening) * A.wrapped + opening * relaxed
+        elif u > 0.65:
+            closing = _smoothstep((1 - u) / 0.35)
+            T = _offset(B.hand_in_object, RETRACT * closing)
+            chains = (1 - closing) * B.wrapped + closing * relaxed
+        else:
+            T = _interpolate(_offset(A.hand_in_object, RETRACT), _offset(B.hand_in_object, RETRACT), _smoothstep((u - 0.35) / 0.3))
+            chains = relaxed
+        states.append(HandState(T, chains, False, after))
+    return states

@@ -1,0 +1,153 @@
+"""A PrimeSense-like sensor: noisy, holey, millimetre depth and shaded, textured, noisy colour.
+
+Depth (metres in, uint16 millimetres out, 0 = no measurement):
+- axial noise, Gaussian with sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m, independent per pixel;
+- dropout at grazing angles: certain beyond ~87 degrees between ray and surface, none below ~72;
+- random speckle holes (0.4% of pixels) and blob holes (a thresholded smooth random field);
+- shadow-like dropout next to depth jumps (> 3 cm) with probability 0.4;
+- no measurement nearer than 0.35 m or farther than 4.5 m; rounding to millimetres.
+Colour: procedural albedo per scene part (a seeded pattern on the object, skin on the hand),
+Lambert shading with ambient light, Gaussian noise (sigma 2.5 levels).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .render import Render
+from .scene import HAND, OBJECT, PERSON, TABLE, WALL, Layout
+
+MIN_RANGE, MAX_RANGE = 0.35, 4.5
+SPECKLE_RATE = 0.004
+EDGE_JUMP, EDGE_DROPOUT = 0.03, 0.4
+COLOR_NOISE = 2.5
+AMBIENT = 0.35
+
+
+def depth_sigma(z: np.ndarray | float) -> np.ndarray | float:
+    """Axial depth noise (standard deviation, metres) of a PrimeSense sensor at depth z metres."""
+    return 0.0012 + 0.0019 * (np.asarray(z) - 0.4) ** 2
+
+
+def grazing_dropout_probability(cos_incidence: np.ndarray) -> np.ndarray:
+    """Chance that a pixel has no depth, from |cos| of the ray-to-normal angle: 1 below 0.05, 0 above 0.3."""
+    return np.clip((0.3 - cos_incidence) / 0.25, 0.0, 1.0)
+
+
+def depth_measurement(render: Render, rng: np.random.Generator) -> np.ndarray:
+    """The sensor's depth image (H, W) uint16 millimetres from a render (see the module notes)."""
+    z = render.depth
+    hit = z > 0
+    noisy = z + rng.standard_normal(z.shape) * depth_sigma(z)
+    keep = hit & (z >= MIN_RANGE) & (z <= MAX_RANGE)
+    keep &= rng.random(z.shape) >= grazing_dropout_probability(render.cos_incidence)
+    keep &= rng.random(z.shape) >= SPECKLE_RATE
+    h, w = z.shape
+    field = ndimage.zoom(rng.standard_normal((h // 16, w // 16)), 16, order=1)[:h, :w]
+    keep &= field < 2.3  # about 1% of the image in smooth-edged blobs
+    jump = np.zeros(z.shape, dtype=bool)
+    dx = np.abs(np.diff(z, axis=1)) > EDGE_JUMP
+    dy = np.abs(np.diff(z, axis=0)) > EDGE_JUMP
+    jump[:, 1:] |= dx
+    jump[:, :-1] |= dx
+    jump[1:] |= dy
+    jump[:-1] |= dy
+    keep &= ~(jump & (rng.random(z.shape) < EDGE_DROPOUT))
+    millimetres = np.clip(np.round(noisy * 1000.0), 0, 65535)
+    return np.where(keep, millimetres, 0).astype(np.uint16)
+
+
+@dataclass
+class ObjectStyle:
+    """Seeded appearance of the object: colours (RGB 0..1) and pattern sizes (metres, radians)."""
+
+    base: np.ndarray
+    band: np.ndarray
+    accent: np.ndarray
+    band_centre: float
+    band_half: float
+    stripe_period: float
+    checker_angle: float
+    checker_height: float
+
+
+def _hsv(h: float, s: float, v: float) -> np.ndarray:
+    import colorsys
+
+    return np.array(colorsys.hsv_to_rgb(h, s, v))
+
+
+def object_style(rng: np.random.Generator, height: float) -> ObjectStyle:
+    """A random label-and-stripes look for an object of the given height (its y extent)."""
+    hue = rng.uniform(0, 1)
+    return ObjectStyle(
+        base=_hsv(hue, rng.uniform(0.3, 0.8), rng.uniform(0.45, 0.9)),
+        band=_hsv((hue + rng.uniform(0.25, 0.75)) % 1, rng.uniform(0.2, 0.9), rng.uniform(0.5, 0.95)),
+        accent=_hsv(rng.uniform(0, 1), rng.uniform(0.5, 1.0), rng.uniform(0.15, 0.6)),
+        band_centre=rng.uniform(-0.15, 0.15) * height,
+        band_half=rng.uniform(0.12, 0.25) * height,
+        stripe_period=rng.uniform(0.012, 0.03),
+        checker_angle=np.pi / rng.integers(3, 8),
+        checker_height=rng.uniform(0.008, 0.02),
+    )
+
+
+def object_albedo(points: np.ndarray, style: ObjectStyle) -> np.ndarray:
+    """Albedo (N, 3) at object-frame points (N, 3): base with stripes, a checkered band, a spot opposite +z."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    angle = np.arctan2(x, z)
+    colour = np.repeat(style.base[None], len(points), axis=0)
+    stripes = np.sin(2 * np.pi * y / style.stripe_period) > 0.6
+    colour[stripes] *= 0.7
+    in_band = np.abs(y - style.band_centre) < style.band_half
+    checker = ((np.floor(angle / style.checker_angle) + np.floor(y / style.checker_height)) % 2) == 0
+    colour[in_band] = style.band
+    colour[in_band & checker] = style.accent
+    spot = (np.abs(np.abs(angle) - np.pi) < 0.35) & (np.abs(y - style.band_centre) < style.band_half * 0.6)
+    colour[spot] = 1.0 - style.band
+    return colour
+
+
+def scene_albedo(render: Render, object_pose: np.ndarray, style: ObjectStyle, layout: Layout) -> np.ndarray:
+    """Albedo (H, W, 3) of every pixel from its scene label and hit point."""
+    label = render.label.reshape(-1)
+    points = render.points.reshape(-1, 3)
+    albedo = np.zeros((len(label), 3))
+    sel = label == OBJECT
+    R, t = object_pose[:3, :3], object_pose[:3, 3]
+    albedo[sel] = object_albedo((points[sel] - t) @ R, style)
+    sel = label == HAND
+    p = points[sel]
+    albedo[sel] = layout.skin * (1.0 + 0.05 * np.sin(p[:, :1] * 400) * np.sin(p[:, 1:2] * 370))
+    sel = label == PERSON
+    p = points[sel]
+    head = np.linalg.norm(p - layout.head_centre, axis=1) < layout.head_radius * 1.25
+    hair = head & (p[:, 1] < layout.head_centre[1] - 0.2 * layout.head_radius)
+    person = np.where(head[:, None], layout.skin, layout.shirt)
+    person[hair] = layout.hair
+    albedo[sel] = person * (1.0 + 0.06 * np.sin(p[:, :1] * 150 + p[:, 1:2] * 90))
+    sel = label == WALL
+    p = points[sel]
+    wall = layout.wall_colour * (1.0 + 0.04 * np.sin(p[:, :1] * 7 + 1.3) * np.sin(p[:, 1:2] * 5))
+    for poster in layout.posters:  # three rectangles, each a vectorised test over the wall pixels
+        inside = (np.abs(p[:, 0] - poster[0]) < poster[2]) & (np.abs(p[:, 1] - poster[1]) < poster[3])
+        wall[inside] = poster[4:7] * (0.8 + 0.2 * (np.sin(p[inside, 0] * 60) > 0))[:, None]
+    albedo[sel] = wall
+    sel = label == TABLE
+    p = points[sel]
+    grain = 0.85 + 0.15 * np.sin(p[:, 0] * 90 + 4 * np.sin(p[:, 2] * 9))
+    albedo[sel] = layout.table_colour * grain[:, None]
+    return albedo.reshape(*render.label.shape, 3)
+
+
+def color_image(render: Render, albedo: np.ndarray, light: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Shaded colour (H, W, 3) uint8: albedo x (ambient + Lambert), plus Gaussian noise; black where nothing was hit."""
+    lambert = np.clip(render.normals @ light, 0.0, None)
+    shade = AMBIENT + (1.0 - AMBIENT) * lambert
+    colour = albedo * shade[..., None] * 255.0
+    colour += rng.normal(0.0, COLOR_NOISE, colour.shape)
+    colour[render.label == 0] = 20.0
+    return np.clip(np.round(colour), 0, 255).astype(np.uint8)

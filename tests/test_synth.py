@@ -1,0 +1,218 @@
+"""The synthetic generator: determinism, Redwood pairing, truth consistent with an independent render, noise model,
+orientation coverage, hand occlusion and regrasp, bad inputs, the sample sequence."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+from PIL import Image
+
+from sequences.annotation import Annotation
+from sequences.camera import Camera
+from sequences.reader import open_sequence
+from sequences.synth import generate_sequence, load_truth, truth_annotation
+
+REPO = Path(__file__).resolve().parents[1]
+FRAMES = 8
+
+
+def sigma(z):
+    """PrimeSense axial noise model (the issue's formula), written out independently of the generator."""
+    return 0.0012 + 0.0019 * (z - 0.4) ** 2
+
+
+@pytest.fixture(scope="module")
+def mug(tmp_path_factory) -> Path:
+    return generate_sequence(tmp_path_factory.mktemp("synth") / "mug", "mug", frames=FRAMES, seed=3)
+
+
+def independent_depth(mesh: trimesh.Trimesh, pose: np.ndarray, camera: Camera) -> np.ndarray:
+    """Depth z (H, W) of the mesh alone at the pose, inf where missed: our own minimal ray cast."""
+    vertices = np.asarray(mesh.vertices) @ pose[:3, :3].T + pose[:3, 3]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    d = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
+    rays = np.concatenate([np.zeros_like(d), d], 1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return t.reshape(camera.height, camera.width)  # direction z = 1, so t is z
+
+
+def test_reader_pairs_every_frame_with_its_truth(mug):
+    seq = open_sequence(mug)
+    truth = load_truth(mug)
+    assert len(seq) == FRAMES and not seq.unpaired_color and not seq.unpaired_depth
+    assert seq.ids == truth.ids
+    for frame in seq.frames:
+        colour_number = int(frame.color_path.stem.split("-")[0])
+        depth_number = int(frame.depth_path.stem.split("-")[0])
+        assert depth_number != colour_number  # numbered separately, as in Redwood
+        assert 0 < frame.depth_time_us - frame.color_time_us < 10_000  # a few ms apart
+        assert frame.id == f"{colour_number:07d}"
+    assert seq.color(0).shape == (480, 640, 3) and seq.depth_raw(0).dtype == np.uint16
+    assert (mug / "truth" / "mesh.obj").is_file()
+    assert sorted(p.stem for p in (mug / "truth" / "masks").glob("*.png")) == truth.ids
+
+
+def test_truth_document_and_mesh(mug):
+    truth = load_truth(mug)
+    assert truth.category == "mug" and truth.symmetry == "none"
+    np.testing.assert_allclose(truth.extents, truth.mesh.extents, atol=1e-6)
+    np.testing.assert_allclose(truth.mesh.bounds.mean(axis=0), 0.0, atol=1e-6)
+    # a mug 8-12 cm tall, its handle along +z: the box reaches further along +z than the body's radius along x
+    assert 0.08 <= truth.extents[1] <= 0.125
+    assert truth.extents[2] > truth.extents[0] + 0.015
+    vertices = np.asarray(truth.mesh.vertices)
+    assert vertices[:, 2].max() - vertices[:, 2].min() == pytest.approx(truth.extents[2], abs=1e-6)
+    for T in truth.poses.values():
+        np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
+        assert 0.45 <= T[2, 3] <= 0.9
+
+
+def test_depth_matches_independent_render_of_the_true_mesh(mug):
+    seq = open_sequence(mug)
+    truth = load_truth(mug)
+    camera = seq.camera
+    medians, ious = [], []
+    for frame_id in truth.ids:
+        depth = seq.depth(frame_id).astype(np.float64)
+        rendered = independent_depth(truth.mesh, truth.poses[frame_id], camera)
+        mask = truth.mask(frame_id)
+        valid = depth > 0
+        on_object = mask & valid
+        assert on_object.sum() > 500
+        z = rendered[on_object]
+        assert np.all(np.isfinite(z))  # the mask lies inside the object's silhouette
+        ratio = np.abs(depth[on_object] - z) / (sigma(z) + 0.0005)
+        medians.append(np.median(ratio))
+        assert np.percentile(ratio, 95) < 4.0
+        # visible object pixels: the object is hit and the measurement agrees with it (not occluded)
+        visible = np.isfinite(rendered) & valid & (np.abs(depth - np.where(np.isfinite(rendered), rendered, 0)) < 4 * sigma(rendered) + 0.001)
+        ious.append((visible & mask).sum() / (visible | (mask & valid)).sum())
+    assert np.median(medians) < 1.0  # Gaussian: median |x| / sigma = 0.67
+    assert min(ious) > 0.95, ious
+
+
+def test_wall_noise_matches_the_model(mug):
+    seq = open_sequence(mug)
+    truth = load_truth(mug)
+    camera = seq.camera
+    for frame_id in truth.ids[:3]:
+        depth = seq.depth(frame_id).astype(np.float64)
+        patch = depth[:60, :100]  # top-left corner: the wall
+        v, u = np.mgrid[0:60, 0:100]
+        valid = patch > 0
+        # a plane is linear in 1/z over the image: fit it, then look at the residual in z
+        A = np.column_stack([u[valid], v[valid], np.ones(valid.sum())])
+        coef, *_ = np.linalg.lstsq(A, 1.0 / patch[valid], rcond=None)
+        fitted = 1.0 / (A @ coef)
+        residual = patch[valid] - fitted
+        robust_std = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+        expected = np.sqrt(sigma(np.median(fitted)) ** 2 + 0.001**2 / 12)
+        assert robust_std == pytest.approx(expected, rel=0.3)
+
+
+def test_deterministic_per_seed(mug, tmp_path):
+    again = generate_sequence(tmp_path / "again", "mug", frames=FRAMES, seed=3)
+    other = generate_sequence(tmp_path / "other", "mug", frames=FRAMES, seed=4)
+    first = sorted((mug / "depth").iterdir())
+    assert [p.name for p in first] == [p.name for p in sorted((again / "depth").iterdir())]
+    for a, b in zip(first, sorted((again / "depth").iterdir())):
+        assert a.read_bytes() == b.read_bytes()
+    assert json.loads((mug / "truth" / "truth.json").read_text()) == json.loads((again / "truth" / "truth.json").read_text())
+    different = [np.asarray(Image.open(a)) for a in first[:2]], [np.asarray(Image.open(b)) for b in sorted((other / "depth").iterdir())[:2]]
+    assert all(np.mean(x != y) > 0.1 for x, y in zip(*different))
+    assert load_truth(other).extents.tolist() != load_truth(mug).extents.tolist()
+
+
+def test_every_orientation_is_visited(tmp_path):
+    truth = load_truth(generate_sequence(tmp_path / "bottle", "bottle", frames=10, seed=1))
+    assert truth.symmetry == "y" and 0.2 <= truth.extents[1] <= 0.3
+    up = np.array([T[:3, 1] for T in truth.poses.values()])  # object +y in the camera frame
+    assert up[:, 1].min() < -0.8  # pointing up (camera -y)
+    assert up[:, 1].max() > 0.8  # pointing down
+    assert np.abs(up[:, 1]).min() < 0.45  # sideways
+    steps = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", up[1:], up[:-1]), -1, 1)))
+    assert steps.max() < 90  # smooth, not jumping
+
+
+def test_hand_occludes_the_object_and_regrasps(mug):
+    seq = open_sequence(mug)
+    truth = load_truth(mug)
+    hand = truth.notes["hand"]
+    assert any(not h["holding"] for h in hand.values())  # released at least once
+    assert len({h["grasp"] for h in hand.values()}) >= 2
+    occluder_centres, fractions = {}, []
+    for frame_id in truth.ids:
+        T = truth.poses[frame_id]
+        rendered = independent_depth(truth.mesh, T, seq.camera)
+        depth = seq.depth(frame_id).astype(np.float64)
+        silhouette = np.isfinite(rendered)
+        occluded = silhouette & ~truth.mask(frame_id) & (depth > 0) & (depth < rendered - 0.01)
+        if hand[frame_id]["holding"]:
+            fractions.append(occluded.sum() / silhouette.sum())
+            points, _ = seq.camera.backproject(depth, occluded)
+            occluder_centres.setdefault(hand[frame_id]["grasp"], []).append((points - T[:3, 3]) @ T[:3, :3])
+    # the hand covers part of the object in most held frames (from behind, in some views, it hides nothing)
+    assert np.mean(np.array(fractions) > 0.01) >= 0.5, fractions
+    assert max(fractions) < 0.9
+    centres = {k: np.concatenate(v).mean(axis=0) for k, v in occluder_centres.items()}
+    assert len(centres) >= 2
+    a, b = list(centres.values())[:2]
+    assert np.linalg.norm(a - b) > 0.02  # in the object's frame the hand sits elsewhere after the regrasp
+
+
+def test_truth_annotation_perturbs_within_bounds(mug):
+    truth = load_truth(mug)
+    ids = truth.ids[::3]
+    ann = truth_annotation(truth, ids, rotation_deg=5, translation_m=0.01, extents_rel=0.1, seed=2)
+    assert isinstance(ann, Annotation) and sorted(ann.frames) == ids
+    assert ann.category == "mug" and ann.symmetry == "none"
+    assert np.all(np.abs(ann.extents / truth.extents - 1) <= 0.1 + 1e-9)
+    for frame_id in ids:
+        T, P = truth.poses[frame_id], ann.frames[frame_id].matrix
+        angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ P[:3, :3]) - 1) / 2, -1, 1)))
+        assert angle <= 5 + 1e-6 and np.linalg.norm(T[:3, 3] - P[:3, 3]) <= 0.01 + 1e-9
+        assert ann.frames[frame_id].source == "manual"
+    exact = truth_annotation(truth, ids)
+    for frame_id in ids:
+        np.testing.assert_allclose(exact.frames[frame_id].matrix, truth.poses[frame_id], atol=1e-9)
+
+
+def run_synth(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "sequences.synth", *args, "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("case", ["category", "existing", "mesh", "frames"])
+def test_bad_input_exits_2_with_one_line(case, tmp_path):
+    out = tmp_path / "out"
+    if case == "category":
+        result = run_synth(str(out), "--category", "teapot", "--frames", "2")
+        problem = "teapot"
+    elif case == "existing":
+        out.mkdir()
+        (out / "keep.txt").write_text("mine")
+        result = run_synth(str(out), "--category", "mug", "--frames", "2")
+        problem = "not an empty folder"
+        assert (out / "keep.txt").read_text() == "mine" and sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    elif case == "mesh":
+        bad = tmp_path / "broken.obj"
+        bad.write_bytes(b"\x00\xff garbage")
+        result = run_synth(str(out), "--category", "mug", "--frames", "2", "--mesh", str(bad))
+        problem = "broken.obj"
+    else:
+        result = run_synth(str(out), "--category", "mug", "--frames", "0")
+        problem = "frames"
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and problem in lines[0], result.stderr
+    assert not out.exists() or case == "existing"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp")]  # no temporary left behind
