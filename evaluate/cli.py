@@ -1,25 +1,55 @@
-"""``evaluate``: evaluate pose-and-shape methods against REDWOOD75-format ground truth."""
+"""``evaluate``: evaluate pose-and-shape methods against REDWOOD75-format ground truth.
+
+    evaluate --dataset DIR [--frames ROOT] --method SPEC [--method SPEC ...] --out OUT [--config FILE]
+
+writes ``OUT/results.json``, ``OUT/table.md``, ``OUT/table.csv``, ``OUT/precision_curves.png`` and
+``OUT/errors.csv`` (see :mod:`evaluate.report`); options on the command line override the config file
+(:mod:`evaluate.config`).
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
 
-from sequences.errors import run_cli
+from sequences.errors import InputError, run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="evaluate", description="Evaluate methods on a REDWOOD75-format dataset.")
     parser.add_argument("--dataset", help="folder with annotations.json and the meshes")
     parser.add_argument("--frames", help="root of the sequence folders (for methods run here)")
-    parser.add_argument("--method", action="append", help="built-in name (box, template, oracle), NAME=predictions.jsonl or NAME=module:Class")
+    parser.add_argument("--method", action="append", help="built-in name (box, template, oracle), NAME=predictions.jsonl or NAME=module:Class; repeatable; replaces the config's methods")
     parser.add_argument("--out", help="output folder")
     parser.add_argument("--config", help="YAML config; command-line options override it")
+    parser.add_argument("--fscore-threshold", type=float, help="F-score distance threshold, m (default 0.01)")
+    parser.add_argument("--surface-samples", type=int, help="points sampled per surface for chamfer distance and F-score (default 10000)")
+    parser.add_argument("--seed", type=int, help="seed of the surface sampling (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    from evaluate.config import build_config, read_config_file
+
     args = build_parser().parse_args(argv)
-    raise SystemExit("evaluate: not implemented yet")
+    if args.seed is not None and args.seed < 0:
+        raise InputError("--seed", "must be a non-negative integer")
+    file_values = read_config_file(args.config) if args.config else {}
+    config = build_config(args, file_values)
+
+    from evaluate.report import write_outputs
+    from evaluate.runner import evaluate_dataset
+
+    evaluation = evaluate_dataset(config, progress=not args.quiet)
+    paths = write_outputs(config.out, evaluation.dataset.name, evaluation.results, evaluation.dataset.categories, evaluation.notes)
+    for note in evaluation.notes:
+        print(f"note: {note}", file=sys.stderr)
+    for result in evaluation.results:
+        headline = ", ".join(f"{p.label}: {'–' if p.overall is None else f'{100 * p.overall:.1f}%'}" for p in result.precision)
+        print(f"{result.name}: {headline} ({len(result.failed)} of {result.samples} failed)")
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    return 0
 
 
 def entry() -> None:
