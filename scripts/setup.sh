@@ -13,20 +13,23 @@ apt_install() {  # Debian packages, only when missing
   fi
 }
 apt_install libusb-1.0-0            # open3d's wheel links against it
-[ "$want" = test ] && apt_install chromium   # the end-to-end browser test
+if [ "$want" = test ]; then apt_install chromium; fi   # the end-to-end browser test
+pipq() {  # pip, quiet, without the noise of this machine's find-links warnings
+  .venv/bin/python -m pip install -q "$@" 2>&1 | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
+}
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 stamp=.venv/.installed-$want-$(cat pyproject.toml scripts/setup.sh | sha1sum | cut -c1-12)
 if [ ! -e "$stamp" ]; then
-  .venv/bin/python -m pip install -q --upgrade pip
+  pipq --upgrade pip
   if [ "$want" = test ]; then
-    .venv/bin/python -m pip install -q -e ".[test]"
+    pipq -e ".[test]"
     # cpas_toolbox 1.0.0 pins matplotlib<3.6 (does not build on 3.11): install it without its pins,
     # plus what its metrics and Redwood dataset modules import (torch: the CPU wheel on this disk).
-    .venv/bin/python -m pip install -q --no-deps cpas-toolbox==1.0.0
-    .venv/bin/python -m pip install -q torch==2.13.0 yoco gdown requests
+    pipq --no-deps cpas-toolbox==1.0.0
+    pipq torch==2.13.0 yoco gdown requests
   else
-    .venv/bin/python -m pip install -q -e .
+    pipq -e .
   fi
   touch "$stamp"
 fi
