@@ -1,0 +1,47 @@
+"""Exact, fast, documented evaluation metrics for categorical pose and shape estimation.
+
+Conventions: metres, degrees; poses map object to camera (p_cam = R p_obj + t, OpenCV camera);
+quaternions x, y, z, w; boxes centred on the object origin with full side lengths ``extents``;
+symmetric objects (bottle, bowl, can) are symmetric about their object y axis.
+
+Modules: :mod:`.pose_errors` (translation, rotation), :mod:`.box_iou` (exact oriented IoU, symmetric
+IoU, NOCS axis-aligned IoU), :mod:`.shape_metrics` (chamfer, F-score), :mod:`.sampling` (mesh
+sampling, :class:`ShapeIndex`), :mod:`.precision` (thresholds, precision tables and curves),
+:mod:`.sample_errors` (all errors of a sample at once).  Where and why these differ from
+cpas_toolbox 1.0.0 is documented in each module and tested in tests/test_metrics_cpas_agreement.py.
+"""
+
+from evaluate.metrics.box_iou import (
+    axis_aligned_iou,
+    box_iou,
+    box_iou_batch,
+    box_volume,
+    symmetric_box_iou,
+    symmetric_box_iou_batch,
+)
+from evaluate.metrics.pose_errors import rotation_error, translation_error
+from evaluate.metrics.precision import (
+    DEFAULT_FSCORE_DISTANCE,
+    DEFAULT_THRESHOLDS,
+    DEGREE_CURVE,
+    FSCORE_CURVE,
+    IOU_CURVE,
+    POSITION_CURVE,
+    SampleErrors,
+    Threshold,
+    correct,
+    precision,
+    precision_curves,
+    precision_table,
+)
+from evaluate.metrics.sample_errors import QUATERNION_TOLERANCE, compute_sample_errors
+from evaluate.metrics.sampling import DEFAULT_SAMPLES, ShapeIndex, sample_surface
+from evaluate.metrics.shape_metrics import FScore, chamfer_distance, fscore, squared_chamfer_distance
+
+__all__ = [
+    "DEFAULT_FSCORE_DISTANCE", "DEFAULT_SAMPLES", "DEFAULT_THRESHOLDS", "DEGREE_CURVE", "FSCORE_CURVE", "FScore",
+    "IOU_CURVE", "POSITION_CURVE", "QUATERNION_TOLERANCE", "SampleErrors", "ShapeIndex", "Threshold",
+    "axis_aligned_iou", "box_iou", "box_iou_batch", "box_volume", "chamfer_distance", "compute_sample_errors",
+    "correct", "fscore", "precision", "precision_curves", "precision_table", "rotation_error", "sample_surface",
+    "squared_chamfer_distance", "symmetric_box_iou", "symmetric_box_iou_batch", "translation_error",
+]
