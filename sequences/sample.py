@@ -1,7 +1,7 @@
 """The bundled sample sequence: a synthetic mug, generated deterministically on first use and cached.
 
 ``annotate`` opens it when no sequence is given. It lives in ``$REDWOOD_GT_CACHE`` (or
-``~/.cache/redwood-gt``) as ``sample-mug-v1/``, with its truth in ``truth/`` and no annotation
+``~/.cache/redwood-gt``) as ``sample-mug-v<generator version>/``, with its truth in ``truth/`` and no annotation
 document (an annotator starts from scratch). Generation goes to a private temporary folder that
 is renamed into place, so two processes racing to create it both end up with one complete copy.
 """
@@ -13,7 +13,9 @@ import shutil
 import tempfile
 from pathlib import Path
 
-SAMPLE_NAME = "sample-mug-v1"
+from .synth.options import GENERATOR_VERSION
+
+SAMPLE_NAME = f"sample-mug-v{GENERATOR_VERSION}"
 SAMPLE_CATEGORY = "mug"
 SAMPLE_FRAMES = 60
 SAMPLE_SEED = 7

@@ -216,3 +216,88 @@ def test_bad_input_exits_2_with_one_line(case, tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: ") and problem in lines[0], result.stderr
     assert not out.exists() or case == "existing"
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp")]  # no temporary left behind
+
+
+def test_given_redwood75_mesh_in_raw_axes(redwood75_dir, tmp_path):
+    source = redwood75_dir / "meshes" / "00015.obj"  # a mug, REDWOOD75 raw axes (raw x = ShapeNet z)
+    out = generate_sequence(tmp_path / "r75", "mug", frames=3, seed=0, mesh=source, mesh_axes="redwood75")
+    truth = load_truth(out)
+    raw = trimesh.load(source, force="mesh", process=False)
+    raw_extents = np.ptp(np.asarray(raw.vertices), axis=0)
+    np.testing.assert_allclose(truth.extents, raw_extents[[2, 1, 0]], atol=1e-6)  # ShapeNet x, y, z = raw z, y, x
+    expected = np.asarray(raw.vertices) @ np.array([[0, 0, 1], [0, -1, 0], [1, 0, 0]], float).T  # shapenet = M^T raw, M symmetric
+    expected -= (expected.min(axis=0) + expected.max(axis=0)) / 2
+    np.testing.assert_allclose(np.sort(np.asarray(truth.mesh.vertices), axis=0), np.sort(expected, axis=0), atol=1e-6)
+    assert truth.symmetry == "none" and len(open_sequence(out)) == 3
+    assert truth.mask(truth.ids[0]).sum() > 300
+
+
+@pytest.mark.parametrize("category", ["bottle", "bowl", "can", "mug", "camera", "laptop"])
+def test_procedural_shapes_have_realistic_sizes_and_symmetry(category):
+    from sequences.synth.shapes import procedural_mesh
+
+    ranges = {  # box side lengths x, y, z in metres (ShapeNet axes, y up)
+        "bottle": ((0.05, 0.1), (0.2, 0.3), (0.05, 0.1)), "bowl": ((0.12, 0.18), (0.03, 0.1), (0.12, 0.18)),
+        "can": ((0.06, 0.08), (0.1, 0.13), (0.06, 0.08)), "mug": ((0.07, 0.1), (0.08, 0.12), (0.09, 0.15)),
+        "camera": ((0.09, 0.15), (0.06, 0.1), (0.05, 0.12)), "laptop": ((0.27, 0.37), (0.15, 0.3), (0.15, 0.4)),
+    }[category]
+    sizes = []
+    for seed in range(4):
+        mesh = procedural_mesh(category, np.random.default_rng(seed))
+        np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-9)
+        for side, (low, high) in zip(mesh.extents, ranges):
+            assert low <= side <= high, (category, mesh.extents)
+        sizes.append(mesh.extents)
+        if category in ("bottle", "bowl", "can"):
+            # rotationally symmetric about y: the mesh turned by any angle about y lies on itself
+            angle = 0.7 + seed
+            turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+            turned = (np.asarray(mesh.vertices) @ turn.T).astype(np.float32)
+            assert scene.compute_distance(o3d.core.Tensor(turned)).numpy().max() < 0.001
+    assert np.ptp(np.array(sizes), axis=0).max() > 0.005  # the seed varies the shape
+
+
+def test_motion_is_smooth_and_hand_held():
+    from sequences.synth.motion import object_trajectory
+
+    trajectory = object_trajectory(100, np.random.default_rng(0))
+    R = trajectory.rotations
+    steps = np.degrees(np.arccos(np.clip((np.einsum("nij,nij->n", R[1:], R[:-1]) - 1) / 2, -1, 1)))
+    assert 2.0 < np.median(steps) < 8.0 and steps.max() < 15.0  # a few degrees per frame
+    assert np.linalg.norm(np.diff(trajectory.positions, axis=0), axis=1).max() < 0.015
+    assert np.all((trajectory.positions[:, 2] > 0.45) & (trajectory.positions[:, 2] < 0.9))
+    up = R[:, :, 1]
+    assert up[:, 1].min() < -0.8 and up[:, 1].max() > 0.8 and np.abs(up[:, 1]).min() < 0.3
+
+
+def test_sample_sequence_is_generated_once_atomically(tmp_path, monkeypatch):
+    import threading
+
+    from sequences import sample
+
+    monkeypatch.setenv("REDWOOD_GT_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(sample, "SAMPLE_FRAMES", 3)
+    results, errors = [], []
+
+    def make():
+        try:
+            results.append(sample.sample_sequence())
+        except Exception as error:  # collected: a thread's exception would otherwise vanish
+            errors.append(error)
+
+    threads = [threading.Thread(target=make) for _ in range(2)]  # two racing creators
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(set(results)) == 1
+    root = results[0]
+    assert root == tmp_path / "cache" / sample.SAMPLE_NAME
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == [sample.SAMPLE_NAME]  # no temporary left
+    assert not (root / "annotation.yaml").exists()
+    truth = load_truth(root)
+    assert truth.category == "mug" and open_sequence(root).ids == truth.ids and len(truth.ids) == 3
+    stamp = (root / "truth" / "truth.json").stat().st_mtime_ns
+    assert sample.sample_sequence() == root and (root / "truth" / "truth.json").stat().st_mtime_ns == stamp  # reused

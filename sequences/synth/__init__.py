@@ -5,7 +5,15 @@ PrimeSense-like camera by a hand that occludes it and regrasps it, in front of a
 and a table. The sequence is written in Redwood's layout with its truth in ``OUT/truth/``.
 """
 
-from .generate import generate_sequence
 from .truth import Truth, load_truth, truth_annotation
+
+
+def __getattr__(name: str):
+    # the renderer (open3d) is imported on first use, so ``python -m sequences.synth`` rejects bad input fast
+    if name == "generate_sequence":
+        from .generate import generate_sequence
+
+        return generate_sequence
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["generate_sequence", "load_truth", "truth_annotation", "Truth"]

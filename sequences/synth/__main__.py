@@ -10,8 +10,7 @@ import argparse
 import time
 
 from ..errors import run_cli
-from .generate import generate_sequence
-from .shapes import MESH_AXES
+from .options import MESH_AXES, check_arguments
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -25,6 +24,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="the mesh's axes: shapenet (y up) or redwood75 (REDWOOD75 raw: x = ShapeNet z, y = -ShapeNet y, z = ShapeNet x)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     args = parser.parse_args(argv)
+    # reject bad input before importing the renderer (open3d takes seconds to import)
+    check_arguments(args.out, args.category, args.frames, args.mesh, args.mesh_axes)
+    if args.mesh is not None:
+        from .shapes import load_mesh
+
+        load_mesh(args.mesh, args.mesh_axes)
+    from .generate import generate_sequence
+
     started = time.perf_counter()
     out = generate_sequence(args.out, args.category, args.frames, args.seed, args.mesh, args.mesh_axes, progress=not args.quiet)
     elapsed = time.perf_counter() - started

@@ -18,18 +18,19 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from ..annotation import CATEGORIES, default_symmetry
+from ..annotation import default_symmetry
 from ..camera import Camera
 from ..errors import InputError
 from .motion import GraspPlanner, hand_states, object_trajectory, plan_grasps
+from .options import GENERATOR_VERSION, check_arguments
+from .png16 import write_png16
 from .primitives import Part, vertex_normals
-from .render import render
-from .scene import OBJECT, background_parts, elbow_at, hand_parts, make_layout, person_parts
+from .render import projected_window, render
+from .scene import OBJECT, background_parts, elbow_at, hand_parts, make_layout, person_parts, upper_arm_part
 from .sensor import color_image, depth_measurement, object_style, scene_albedo
-from .shapes import MESH_AXES, PROCEDURAL_CATEGORIES, load_mesh, procedural_mesh
+from .shapes import load_mesh, procedural_mesh
 from .truth import TRUTH_DIR, write_mask, write_truth
 
-GENERATOR_VERSION = 1
 #: Colour frame period (29.97 Hz) and the depth frame's lag behind colour (Redwood: a few ms), microseconds.
 FRAME_PERIOD_US = 33_367
 DEPTH_LAG_US = (1_500, 4_500)
@@ -40,20 +41,6 @@ SHAPE, MOTION, LAYOUT, GRASPS, STYLE, TIMING, FRAME_STREAM = 1, 2, 3, 4, 5, 6, 1
 
 def _rng(seed: int, stream: int) -> np.random.Generator:
     return np.random.default_rng([seed, stream])
-
-
-def check_arguments(out: Path, category: str, frames: int, mesh: str | Path | None, mesh_axes: str) -> None:
-    """Refuse bad arguments before any work: an existing non-empty OUT, a bad category, frame count or axes."""
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(out, "output exists and is not an empty folder; choose a new folder (nothing was written)")
-    allowed = CATEGORIES if mesh is not None else PROCEDURAL_CATEGORIES
-    if category not in allowed:
-        hint = "" if mesh is not None or category not in CATEGORIES else " without --mesh"
-        raise InputError(out, f"category {category!r} is not one of {', '.join(allowed)}{hint}")
-    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
-        raise InputError(out, f"frames must be a positive integer, got {frames!r}")
-    if mesh_axes not in MESH_AXES:
-        raise InputError(mesh if mesh is not None else out, f"mesh axes {mesh_axes!r} are not one of {', '.join(MESH_AXES)}")
 
 
 def frame_names(frames: int, seed: int) -> list[tuple[str, str, str]]:
@@ -87,7 +74,10 @@ def generate_sequence(out: str | Path, category: str, frames: int = 100, seed: i
     hands = hand_states(frames, grasps)
     style = object_style(_rng(seed, STYLE), float(obj.extents[1]))
     object_part = Part(np.asarray(obj.vertices), np.asarray(obj.faces), vertex_normals(np.asarray(obj.vertices), np.asarray(obj.faces)), OBJECT)
-    background = background_parts(layout)
+    # the still scene (wall, table, torso, head) is rendered once; frames re-cast only the moving parts' window
+    still_parts = [*background_parts(layout), *person_parts(layout)]
+    still = render(still_parts, camera)
+    static = (still.label, scene_albedo(still, np.eye(4), style, layout))
     names = frame_names(frames, seed)
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -100,13 +90,13 @@ def generate_sequence(out: str | Path, category: str, frames: int = 100, seed: i
         for i, (frame_id, colour_stem, depth_stem) in enumerate(names):  # one render per frame
             T = trajectory.pose(i)
             elbow = elbow_at(layout, T[:3, 3])
-            parts = [object_part.transformed(T), hand_parts(hands[i], T, elbow), *person_parts(layout, elbow), *background]
-            result = render(parts, camera)
+            moving = [object_part.transformed(T), hand_parts(hands[i], T, elbow), upper_arm_part(layout, elbow)]
+            result = render(moving + still_parts, camera, still, projected_window(moving, camera))
             rng = _rng(seed, FRAME_STREAM + i)
             depth = depth_measurement(result, rng)
-            colour = color_image(result, scene_albedo(result, T, style, layout), layout.light, rng)
+            colour = color_image(result, scene_albedo(result, T, style, layout, static), layout.light, rng)
             Image.fromarray(colour).save(tmp / "rgb" / f"{colour_stem}.jpg", quality=JPEG_QUALITY)
-            Image.fromarray(depth).save(tmp / "depth" / f"{depth_stem}.png", compress_level=3)
+            write_png16(tmp / "depth" / f"{depth_stem}.png", depth)
             write_mask(tmp, frame_id, result.label == OBJECT)
             poses[frame_id] = T
             if progress:

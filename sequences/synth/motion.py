@@ -31,7 +31,7 @@ THUMB_RADIUS = 0.0100
 FOREARM_RADIUS = 0.030
 #: Wrist in the hand frame (behind the palm, opposite the fingers).
 WRIST = np.array([0.0, -0.060, 0.006])
-RETRACT = 0.08  # how far the open hand backs off the surface between grasps, metres
+RETRACT = 0.05  # how far the open hand backs off the surface between grasps, metres
 
 
 @dataclass

@@ -22,46 +22,77 @@ from .primitives import Part, concatenate
 class Render:
     """Per-pixel render results, (H, W[, 3]) arrays; ``label`` 0 and ``depth`` 0 where no surface was hit."""
 
-    depth: np.ndarray  # z of the hit point, metres (float64)
+    depth: np.ndarray  # z of the hit point, metres (float32)
     label: np.ndarray  # uint8 scene label of the hit triangle (see scene.py)
-    points: np.ndarray  # hit points, camera frame
-    normals: np.ndarray  # interpolated unit vertex normals, turned to face the camera
-    cos_incidence: np.ndarray  # |cos| of the angle between the ray and the face normal (1 = head on)
+    points: np.ndarray  # hit points, camera frame (float32)
+    normals: np.ndarray  # interpolated unit vertex normals, turned to face the camera (float32)
+    cos_incidence: np.ndarray  # |cos| of the angle between the ray and the face normal (1 = head on; float32)
 
 
 @lru_cache(maxsize=4)
 def _rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Rays (H*W, 6) float32 from the origin through pixel centres (direction z = 1), and unit directions (H*W, 3)."""
+    """Rays (H*W, 6) float32 from the origin through pixel centres (direction z = 1), and unit directions (H*W, 3) float32."""
     directions = camera.pixel_rays().reshape(-1, 3)
     rays = np.concatenate([np.zeros_like(directions), directions], axis=1).astype(np.float32)
-    return rays, directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    return rays, (directions / np.linalg.norm(directions, axis=1, keepdims=True)).astype(np.float32)
 
 
-def render(parts: list[Part], camera: Camera) -> Render:
-    """Cast one ray per pixel against all parts; ray directions have z = 1 so the hit distance is the depth z."""
+def projected_window(parts: list[Part], camera: Camera, margin: int = 2) -> tuple[int, int, int, int] | None:
+    """Pixel rows v0:v1 and columns u0:u1 covering the projection of the parts (None if one is at or behind the camera)."""
+    vertices = np.concatenate([p.vertices for p in parts])
+    if vertices[:, 2].min() <= 1e-3:
+        return None
+    uv, _ = camera.project(vertices)
+    u0, v0 = np.floor(uv.min(axis=0)).astype(int) - margin
+    u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + margin + 1
+    v0, u0 = max(v0, 0), max(u0, 0)
+    v1, u1 = min(v1, camera.height), min(u1, camera.width)
+    return (v0, max(v1, v0), u0, max(u1, u0))
+
+
+def render(parts: list[Part], camera: Camera, base: Render | None = None, window: tuple[int, int, int, int] | None = None) -> Render:
+    """Cast one ray per pixel against all parts; ray directions have z = 1 so the hit distance is the depth z.
+
+    With ``base`` (a render of the still parts of the scene) and ``window`` (rows v0:v1, columns
+    u0:u1 that hold every moving part, see :func:`projected_window`), only the window's rays are
+    cast and the rest is copied from ``base``: outside the window nothing differs.
+    """
+    height, width = camera.shape
+    if base is None or window is None:
+        window = (0, height, 0, width)
+    v0, v1, u0, u1 = window
+    rays, unit = _rays(camera)
+    rays = np.ascontiguousarray(rays.reshape(height, width, 6)[v0:v1, u0:u1].reshape(-1, 6))
+    unit = unit.reshape(height, width, 3)[v0:v1, u0:u1].reshape(-1, 3)
     vertices, faces, normals, labels = concatenate(parts)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    rays, unit = _rays(camera)
     answer = scene.cast_rays(o3d.core.Tensor(rays))
-    t = answer["t_hit"].numpy().astype(np.float64)
+    t = answer["t_hit"].numpy()
     hit = np.isfinite(t)
-    prim = np.where(hit, answer["primitive_ids"].numpy(), 0).astype(np.int64)
-    uv = answer["primitive_uvs"].numpy().astype(np.float64)
-    face_n = answer["primitive_normals"].numpy().astype(np.float64)
-    corners = faces[prim]  # (N, 3) vertex indices of the hit triangles
-    w = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]])  # Embree barycentrics
-    n = np.einsum("nk,nkj->nj", w, normals[corners])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    depth = np.where(hit, t, np.float32(0.0))
+    prim = np.where(hit, answer["primitive_ids"].numpy(), 0)
+    uv = answer["primitive_uvs"].numpy()
+    # smooth normal: the hit triangle's vertex normals weighted by Embree's barycentrics (1 - u - v, u, v)
+    corner_normals = normals.astype(np.float32)[faces[prim]]  # (N, 3, 3)
+    n = corner_normals[:, 0] + uv[:, :1] * (corner_normals[:, 1] - corner_normals[:, 0]) + uv[:, 1:] * (corner_normals[:, 2] - corner_normals[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), np.float32(1e-12))
     # look at the side facing the camera (the inside of a mug, the back of a quad)
-    n *= -np.sign(np.einsum("ij,ij->i", n, unit) + 1e-12)[:, None]
-    cos = np.abs(np.einsum("ij,ij->i", face_n, unit))
-    depth = np.where(hit, t, 0.0)
-    shape = camera.shape
-    return Render(
+    n *= np.where(np.einsum("ij,ij->i", n, unit) > 0, np.float32(-1.0), np.float32(1.0))[:, None]
+    n[~hit] = 0.0
+    cos = np.abs(np.einsum("ij,ij->i", answer["primitive_normals"].numpy(), unit))
+    cos[~hit] = 0.0
+    shape = (v1 - v0, u1 - u0)
+    local = Render(
         depth=depth.reshape(shape),
         label=np.where(hit, labels[prim], 0).astype(np.uint8).reshape(shape),
         points=(rays[:, 3:] * depth[:, None]).reshape(*shape, 3),
-        normals=np.where(hit[:, None], n, 0.0).reshape(*shape, 3),
-        cos_incidence=np.where(hit, cos, 0.0).reshape(shape),
+        normals=n.reshape(*shape, 3),
+        cos_incidence=cos.reshape(shape),
     )
+    if shape == (height, width):
+        return local
+    out = Render(*(np.array(getattr(base, name)) for name in ("depth", "label", "points", "normals", "cos_incidence")))
+    for name in ("depth", "label", "points", "normals", "cos_incidence"):
+        getattr(out, name)[v0:v1, u0:u1] = getattr(local, name)
+    return out

@@ -100,14 +100,18 @@ def hand_parts(state: HandState, object_pose: np.ndarray, elbow: np.ndarray) -> 
     return Part(vertices, faces, normals, HAND)
 
 
-def person_parts(layout: Layout, elbow: np.ndarray) -> list[Part]:
-    """Torso and head (ellipsoids), upper arm (capsule, shoulder to elbow), camera frame."""
+def person_parts(layout: Layout) -> list[Part]:
+    """The still part of the person: torso and head (ellipsoids) and neck (capsule), camera frame."""
     torso = ellipsoids(np.stack([layout.torso_centre, layout.head_centre]),
                        np.stack([np.diag(layout.torso_axes), np.diag([layout.head_radius * 0.85, layout.head_radius * 1.1, layout.head_radius])]),
                        PERSON, n_lat=12, n_lon=20)
-    arm = capsules(layout.shoulder[None], elbow[None], np.array([0.045]), PERSON)
     neck = capsules(layout.head_centre[None], (layout.torso_centre - np.array([0, layout.torso_axes[1] * 0.8, 0]))[None], np.array([0.05]), PERSON)
-    return [torso, arm, neck]
+    return [torso, neck]
+
+
+def upper_arm_part(layout: Layout, elbow: np.ndarray) -> Part:
+    """The upper arm in its sleeve (a capsule from the shoulder to the elbow), camera frame."""
+    return capsules(layout.shoulder[None], np.asarray(elbow)[None], np.array([0.045]), PERSON)
 
 
 def background_parts(layout: Layout) -> list[Part]:

@@ -40,14 +40,8 @@ def grazing_dropout_probability(cos_incidence: np.ndarray) -> np.ndarray:
 def depth_measurement(render: Render, rng: np.random.Generator) -> np.ndarray:
     """The sensor's depth image (H, W) uint16 millimetres from a render (see the module notes)."""
     z = render.depth
-    hit = z > 0
-    noisy = z + rng.standard_normal(z.shape) * depth_sigma(z)
-    keep = hit & (z >= MIN_RANGE) & (z <= MAX_RANGE)
-    keep &= rng.random(z.shape) >= grazing_dropout_probability(render.cos_incidence)
-    keep &= rng.random(z.shape) >= SPECKLE_RATE
     h, w = z.shape
-    field = ndimage.zoom(rng.standard_normal((h // 16, w // 16)), 16, order=1)[:h, :w]
-    keep &= field < 2.3  # about 1% of the image in smooth-edged blobs
+    noisy = z + rng.standard_normal(z.shape, dtype=np.float32) * depth_sigma(z).astype(np.float32)
     jump = np.zeros(z.shape, dtype=bool)
     dx = np.abs(np.diff(z, axis=1)) > EDGE_JUMP
     dy = np.abs(np.diff(z, axis=0)) > EDGE_JUMP
@@ -55,8 +49,13 @@ def depth_measurement(render: Render, rng: np.random.Generator) -> np.ndarray:
     jump[:, :-1] |= dx
     jump[1:] |= dy
     jump[:-1] |= dy
-    keep &= ~(jump & (rng.random(z.shape) < EDGE_DROPOUT))
-    millimetres = np.clip(np.round(noisy * 1000.0), 0, 65535)
+    # independent dropout causes combined into one chance of keeping the pixel, drawn once
+    keep_chance = (1.0 - grazing_dropout_probability(render.cos_incidence)) * (1.0 - SPECKLE_RATE) * (1.0 - EDGE_DROPOUT * jump)
+    keep = rng.random(z.shape, dtype=np.float32) < keep_chance
+    keep &= (z >= MIN_RANGE) & (z <= MAX_RANGE)  # also drops pixels where nothing was hit (z = 0)
+    field = ndimage.zoom(rng.standard_normal((h // 16, w // 16), dtype=np.float32), 16, order=1)[:h, :w]
+    keep &= field < 2.3  # about 1% of the image in smooth-edged blobs
+    millimetres = np.clip(np.rint(noisy * np.float32(1000.0)), 0, 65535)
     return np.where(keep, millimetres, 0).astype(np.uint16)
 
 
@@ -111,43 +110,56 @@ def object_albedo(points: np.ndarray, style: ObjectStyle) -> np.ndarray:
     return colour
 
 
-def scene_albedo(render: Render, object_pose: np.ndarray, style: ObjectStyle, layout: Layout) -> np.ndarray:
-    """Albedo (H, W, 3) of every pixel from its scene label and hit point."""
+def scene_albedo(render: Render, object_pose: np.ndarray, style: ObjectStyle, layout: Layout,
+                 static: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Albedo (H, W, 3) float32 of every pixel from its scene label and hit point.
+
+    ``static`` = (labels (H, W), albedo (H, W, 3)) of the scene without the moving parts: pixels
+    showing the same static part reuse that albedo (the camera and the background do not move).
+    """
     label = render.label.reshape(-1)
     points = render.points.reshape(-1, 3)
-    albedo = np.zeros((len(label), 3))
-    sel = label == OBJECT
+    if static is None:
+        albedo = np.zeros((len(label), 3), dtype=np.float32)
+        todo = np.ones(len(label), dtype=bool)
+    else:
+        static_label, static_albedo = static[0].reshape(-1), static[1].reshape(-1, 3)
+        albedo = static_albedo.copy()
+        todo = (label != static_label) | (label == OBJECT) | (label == HAND)
+    sel = todo & (label == OBJECT)
     R, t = object_pose[:3, :3], object_pose[:3, 3]
     albedo[sel] = object_albedo((points[sel] - t) @ R, style)
-    sel = label == HAND
+    sel = todo & (label == HAND)
     p = points[sel]
     albedo[sel] = layout.skin * (1.0 + 0.05 * np.sin(p[:, :1] * 400) * np.sin(p[:, 1:2] * 370))
-    sel = label == PERSON
+    sel = todo & (label == PERSON)
     p = points[sel]
     head = np.linalg.norm(p - layout.head_centre, axis=1) < layout.head_radius * 1.25
     hair = head & (p[:, 1] < layout.head_centre[1] - 0.2 * layout.head_radius)
     person = np.where(head[:, None], layout.skin, layout.shirt)
     person[hair] = layout.hair
     albedo[sel] = person * (1.0 + 0.06 * np.sin(p[:, :1] * 150 + p[:, 1:2] * 90))
-    sel = label == WALL
+    sel = todo & (label == WALL)
     p = points[sel]
     wall = layout.wall_colour * (1.0 + 0.04 * np.sin(p[:, :1] * 7 + 1.3) * np.sin(p[:, 1:2] * 5))
     for poster in layout.posters:  # three rectangles, each a vectorised test over the wall pixels
         inside = (np.abs(p[:, 0] - poster[0]) < poster[2]) & (np.abs(p[:, 1] - poster[1]) < poster[3])
         wall[inside] = poster[4:7] * (0.8 + 0.2 * (np.sin(p[inside, 0] * 60) > 0))[:, None]
     albedo[sel] = wall
-    sel = label == TABLE
+    sel = todo & (label == TABLE)
     p = points[sel]
     grain = 0.85 + 0.15 * np.sin(p[:, 0] * 90 + 4 * np.sin(p[:, 2] * 9))
     albedo[sel] = layout.table_colour * grain[:, None]
+    sel = todo & (label == 0)
+    albedo[sel] = 0.0
     return albedo.reshape(*render.label.shape, 3)
 
 
 def color_image(render: Render, albedo: np.ndarray, light: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Shaded colour (H, W, 3) uint8: albedo x (ambient + Lambert), plus Gaussian noise; black where nothing was hit."""
-    lambert = np.clip(render.normals @ light, 0.0, None)
+    """Shaded colour (H, W, 3) uint8: albedo x (ambient + Lambert), plus Gaussian noise; dark where nothing was hit."""
+    lambert = np.clip(render.normals @ light.astype(np.float32), 0.0, None)
     shade = AMBIENT + (1.0 - AMBIENT) * lambert
-    colour = albedo * shade[..., None] * 255.0
-    colour += rng.normal(0.0, COLOR_NOISE, colour.shape)
+    colour = albedo * (shade[..., None] * np.float32(255.0))
+    colour += rng.standard_normal(colour.shape, dtype=np.float32) * np.float32(COLOR_NOISE)
     colour[render.label == 0] = 20.0
-    return np.clip(np.round(colour), 0, 255).astype(np.uint8)
+    return np.clip(np.rint(colour), 0, 255).astype(np.uint8)

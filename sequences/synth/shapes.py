@@ -13,11 +13,9 @@ import numpy as np
 import trimesh
 
 from ..errors import InputError
+from .options import MESH_AXES, PROCEDURAL_CATEGORIES
 from .primitives import revolve, tube
 
-#: Categories the generator can build without a mesh file.
-PROCEDURAL_CATEGORIES = ("bottle", "bowl", "mug", "can", "camera", "laptop")
-MESH_AXES = ("shapenet", "redwood75")
 #: Accepted object sizes for a given mesh (largest box side, metres): the scene is built for hand-held objects.
 MESH_SIZE_RANGE = (0.02, 0.6)
 

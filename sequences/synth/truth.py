@@ -51,7 +51,7 @@ class Truth:
 
 def write_mask(root: Path, frame_id: str, mask: np.ndarray) -> None:
     """Write ``truth/masks/<frame id>.png`` (uint8 0/255)."""
-    Image.fromarray((mask * 255).astype(np.uint8)).save(root / TRUTH_DIR / "masks" / f"{frame_id}.png", compress_level=3)
+    Image.fromarray((mask * 255).astype(np.uint8)).save(root / TRUTH_DIR / "masks" / f"{frame_id}.png", compress_level=1)
 
 
 def pose_entry(T: np.ndarray) -> dict:
