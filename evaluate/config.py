@@ -30,12 +30,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
+from evaluate import metrics
 from sequences.errors import InputError
 
 THRESHOLD_KEYS = ("position", "degrees", "iou", "fscore")
+#: The paper's threshold tuples (Table 2): (10 deg, 2 cm), (5 deg, 1 cm), with F-score >= 0.6 / 0.8.
+DEFAULT_THRESHOLDS = tuple(t.as_dict() for t in metrics.DEFAULT_THRESHOLDS)
+#: The grids of the paper's Fig. 5 (cpas_toolbox's redwood75.yaml), plus IoU.
+DEFAULT_CURVES = {
+    "position": metrics.POSITION_CURVE.tolist(),  # m
+    "degrees": metrics.DEGREE_CURVE.tolist(),
+    "iou": metrics.IOU_CURVE.tolist(),
+    "fscore": metrics.FSCORE_CURVE.tolist(),
+}
+KEYS = ("position", "degrees", "iou", "fscore")
 #: The paper's threshold tuples (Table 2): (10 deg, 2 cm), (5 deg, 1 cm), with F-score >= 0.6 / 0.8.
 DEFAULT_THRESHOLDS = (
     {"position": 0.02, "degrees": 10.0, "iou": None, "fscore": None},
@@ -67,8 +77,8 @@ class EvaluateConfig:
     methods: list[MethodEntry]
     frames: Path | None = None
     thresholds: list[dict] = field(default_factory=lambda: [dict(t) for t in DEFAULT_THRESHOLDS])
-    fscore_threshold: float = 0.01
-    surface_samples: int = 10000
+    fscore_threshold: float = metrics.DEFAULT_FSCORE_DISTANCE
+    surface_samples: int = metrics.DEFAULT_SAMPLES
     seed: int = 0
     curves: dict[str, list[float]] = field(default_factory=lambda: {k: list(v) for k, v in DEFAULT_CURVES.items()})
 
@@ -212,6 +222,3 @@ def build_config(args, file_values: dict | None = None) -> EvaluateConfig:
         raise InputError(where, "no method: give --method or 'methods:' in the config")
     return EvaluateConfig(**values)
 
-
-def curve_grid(config: EvaluateConfig, key: str) -> np.ndarray:
-    return np.asarray(config.curves[key], dtype=np.float64)

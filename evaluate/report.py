@@ -24,8 +24,6 @@ ERROR_COLUMNS = (
     ("iou", ""),
     ("chamfer", "m"),
     ("fscore", ""),
-    ("fscore_precision", ""),
-    ("fscore_recall", ""),
 )
 CURVE_LABELS = {
     "position": ("position error threshold (cm)", 100.0),

@@ -15,13 +15,11 @@ import numpy as np
 
 from evaluate.config import EvaluateConfig
 from evaluate.datasets import Dataset, Sample, open_dataset
-from evaluate.methods import FrameInputs, Prediction, PredictionFailure, SampleMethod, get_method
+from evaluate.methods import FrameInputs, PredictionFailure, SampleMethod, get_method
 from evaluate.methods.predictions import PredictionsFile
 from evaluate.report import MethodResult, ThresholdPrecision
 from sequences.errors import InputError
 
-#: per-sample error arrays, NaN = not available
-ERROR_KINDS = ("translation", "rotation", "iou", "chamfer", "fscore", "fscore_precision", "fscore_recall")
 
 
 @dataclass
@@ -56,115 +54,84 @@ def check_frames(dataset: Dataset, methods: list[SampleMethod], frames: Path | N
                 raise InputError(path, f"frame of sample {sample.label} not found; method {runners[0]} needs it")
 
 
-def _reconstruction_points(reconstruction, n: int, seed: int) -> np.ndarray:
-    from evaluate.metrics.sampling import sample_surface
+def reconstruction_points(reconstruction, n: int, seed: int) -> np.ndarray | None:
+    """A reconstruction as points (object frame, m): a mesh is sampled (``n`` points, seeded), points are kept."""
+    from evaluate.metrics import sample_surface
 
+    if reconstruction is None:
+        return None
     if getattr(reconstruction, "faces", None) is not None:
-        return sample_surface(reconstruction, n, seed)
+        try:
+            return sample_surface(reconstruction, n, seed)
+        except ValueError as error:
+            raise PredictionFailure(f"reconstruction mesh cannot be sampled ({error})") from error
     return np.asarray(reconstruction, dtype=np.float64)
 
 
-class ShapeScorer:
-    """Chamfer distance and F-score of posed reconstructions against the posed true mesh; the true
-    mesh is sampled and indexed once per mesh file, whatever the number of samples and methods."""
+class ShapeIndexCache:
+    """The true mesh of each object sampled and KD-tree-indexed once, for every sample and method."""
 
-    def __init__(self, dataset: Dataset, n: int, seed: int, fscore_threshold: float) -> None:
-        self.dataset, self.n, self.seed, self.threshold = dataset, n, seed, fscore_threshold
+    def __init__(self, dataset: Dataset, n: int, seed: int) -> None:
+        self.dataset, self.n, self.seed = dataset, n, seed
         self._index: dict[Path, object] = {}
 
-    def index(self, sample: Sample):
-        from evaluate.metrics.sampling import ShapeIndex
+    def get(self, sample: Sample):
+        from evaluate.metrics import ShapeIndex
 
+        if sample.mesh_path is None:
+            return None
         if sample.mesh_path not in self._index:
             self._index[sample.mesh_path] = ShapeIndex.from_mesh(self.dataset.mesh(sample), self.n, self.seed)
         return self._index[sample.mesh_path]
 
-    def score(self, sample: Sample, prediction: Prediction) -> dict[str, float]:
-        from evaluate.metrics.shape_metrics import chamfer_from_distances, fscore_from_distances
 
-        index = self.index(sample)
-        try:
-            points = _reconstruction_points(prediction.reconstruction, self.n, self.seed)
-        except ValueError as error:
-            raise PredictionFailure(f"reconstruction cannot be sampled ({error})") from error
-        # the posed reconstruction in the true object frame: the same distances as between the posed
-        # clouds in the camera frame (cpas_toolbox scores posed points), with the true side indexed once
-        R_gt, R_pred = _matrix(sample.orientation), _matrix(prediction.orientation)
-        posed = (points @ R_pred.T + prediction.position - sample.position) @ R_gt
-        d_gt_to_pred, d_pred_to_gt = index.distances(posed)
-        score = fscore_from_distances(d_gt_to_pred, d_pred_to_gt, self.threshold)
-        return {
-            "chamfer": chamfer_from_distances(d_gt_to_pred, d_pred_to_gt),
-            "fscore": float(score.fscore),
-            "fscore_precision": float(score.precision),
-            "fscore_recall": float(score.recall),
-        }
+def score_method(dataset: Dataset, predictions: list, shapes: list, fscore_threshold: float):
+    """SampleErrors (evaluate.metrics) of one method: ``predictions`` holds per sample a
+    (position, orientation, extents, points) tuple or None for a failed sample."""
+    from evaluate.metrics import compute_sample_errors
 
-
-def _matrix(q) -> np.ndarray:
-    from evaluate.geometry import quat_to_matrix
-
-    return quat_to_matrix(q)
-
-
-def pose_errors(sample: Sample, prediction: Prediction) -> dict[str, float]:
-    from evaluate.geometry import pose_matrix
-    from evaluate.metrics.box_iou import box_iou, symmetric_box_iou
-    from evaluate.metrics.pose_errors import rotation_error, translation_error
-
-    T_gt, T_pred = pose_matrix(sample.position, sample.orientation), pose_matrix(prediction.position, prediction.orientation)
-    iou = box_iou if sample.symmetry == "none" else symmetric_box_iou
-    return {
-        "translation": float(translation_error(sample.position, prediction.position)),
-        "rotation": float(rotation_error(T_gt[:3, :3], T_pred[:3, :3], symmetry=sample.symmetry)),
-        "iou": float(iou(sample.extents, T_gt, prediction.extents, T_pred)),
-    }
-
-
-def _correct(errors: dict[str, np.ndarray], threshold: dict, fscore_ok: np.ndarray) -> np.ndarray:
-    """Boolean (N,): samples meeting every used threshold (NaN errors never do)."""
-    ok = np.ones(len(fscore_ok), dtype=bool)
-    with np.errstate(invalid="ignore"):
-        if threshold["position"] is not None:
-            ok &= errors["translation"] <= threshold["position"]
-        if threshold["degrees"] is not None:
-            ok &= errors["rotation"] <= threshold["degrees"]
-        if threshold["iou"] is not None:
-            ok &= errors["iou"] >= threshold["iou"]
-        if threshold["fscore"] is not None:
-            ok &= errors["fscore"] >= threshold["fscore"]
-    return ok
-
-
-def precision_at(errors: dict[str, np.ndarray], threshold: dict, categories: np.ndarray, has_mesh: np.ndarray, category_names: list[str]) -> ThresholdPrecision:
-    counted = has_mesh if threshold["fscore"] is not None else np.ones(len(categories), dtype=bool)
-    correct = _correct(errors, threshold, has_mesh)
-
-    def share(selection: np.ndarray) -> float | None:
-        n = int(selection.sum())
-        return None if n == 0 else float(correct[selection].sum()) / n
-
-    return ThresholdPrecision(
-        threshold["position"], threshold["degrees"], threshold["iou"], threshold["fscore"],
-        share(counted), {c: share(counted & (categories == c)) for c in category_names}, int(counted.sum()),
+    samples = dataset.samples
+    pick = lambda k: [None if p is None else p[k] for p in predictions]  # noqa: E731
+    return compute_sample_errors(
+        np.array([s.position for s in samples]),
+        np.array([s.orientation for s in samples]),
+        np.array([s.extents for s in samples]),
+        [s.symmetry for s in samples],
+        shapes,
+        pick(0), pick(1), pick(2), pick(3),
+        fscore_threshold=fscore_threshold,
+        compute_chamfer=True,
     )
 
 
-def curves(errors: dict[str, np.ndarray], grids: dict[str, list[float]], has_mesh: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Overall precision against each single threshold (Fig. 5)."""
+def precision_rows(errors, thresholds: list[dict], categories: np.ndarray, has_mesh: np.ndarray, names: list[str]) -> list[ThresholdPrecision]:
+    """Precision per threshold tuple, overall and per category; F-score tuples over the samples with a true mesh."""
+    from evaluate.metrics import Threshold, precision_table
+
+    rows = []
+    for t in thresholds:
+        counted = has_mesh if t["fscore"] is not None else np.ones(len(categories), dtype=bool)
+        if counted.any():
+            row = precision_table(errors.subset(counted), [Threshold(**t)], categories[counted])[0]
+            overall, per_category = row["overall"], row["per_category"]
+        else:
+            overall, per_category = None, {}
+        rows.append(ThresholdPrecision(t["position"], t["degrees"], t["iou"], t["fscore"], overall, {c: per_category.get(c) for c in names}, int(counted.sum())))
+    return rows
+
+
+def curves(errors, grids: dict[str, list[float]], has_mesh: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Overall precision against each single threshold (Fig. 5); the F-score curve over the samples with a true mesh."""
+    from evaluate.metrics import precision_curves
+
     out = {}
-    n = len(has_mesh)
-    for kind, grid in grids.items():
-        grid = np.asarray(grid, dtype=np.float64)
-        counted = has_mesh if kind == "fscore" else np.ones(n, dtype=bool)
-        if not counted.any():
-            continue
-        values = []
-        for g in grid:
-            threshold = {"position": None, "degrees": None, "iou": None, "fscore": None, kind: g}
-            values.append(_correct(errors, threshold, has_mesh)[counted].mean())
-        out[kind] = (grid, np.asarray(values))
-    return out
+    pose = precision_curves(errors, None, position=grids["position"], degrees=grids["degrees"], iou=grids["iou"], fscore=None)
+    for kind, curve in pose.items():
+        out[kind] = (np.asarray(curve["thresholds"]), np.asarray(curve["overall"]))
+    if has_mesh.any():
+        shape = precision_curves(errors.subset(has_mesh), None, position=None, degrees=None, iou=None, fscore=grids["fscore"])["fscore"]
+        out["fscore"] = (np.asarray(shape["thresholds"]), np.asarray(shape["overall"]))
+    return {k: out[k] for k in ("position", "degrees", "iou", "fscore") if k in out}
 
 
 def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluation:
@@ -176,10 +143,9 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
         raise InputError(config.dataset, "dataset has no samples")
     methods = resolve_methods(config, dataset)
     check_frames(dataset, methods, config.frames)
-    shapes = ShapeScorer(dataset, config.surface_samples, config.seed, config.fscore_threshold)
+    index = ShapeIndexCache(dataset, config.surface_samples, config.seed)
     n = len(dataset)
-    errors = {m.name: {k: np.full(n, np.nan) for k in ERROR_KINDS} for m in methods}
-    failures: dict[str, list[dict]] = {m.name: [] for m in methods}
+    predicted: dict[str, list] = {m.name: [None] * n for m in methods}
     reasons: dict[str, list[str | None]] = {m.name: [None] * n for m in methods}
     bar = tqdm(total=n * len(methods), desc="evaluate", unit="prediction", disable=not progress)
     for i, sample in enumerate(dataset):
@@ -187,52 +153,53 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
         for method in methods:
             bar.set_postfix_str(f"{method.name} {sample.label}", refresh=False)
             try:
-                prediction = method.predict(sample, inputs)
-                values = pose_errors(sample, prediction)
-                if sample.mesh_path is not None and prediction.reconstruction is not None:
-                    values.update(shapes.score(sample, prediction))
+                p = method.predict(sample, inputs)
+                points = reconstruction_points(p.reconstruction, config.surface_samples, config.seed) if sample.mesh_path is not None else None
+                predicted[method.name][i] = (p.position, p.orientation, p.extents, points)
             except PredictionFailure as failure:
-                reason = " ".join(str(failure).split())
-                entry = {"sequence": sample.sequence, "frame": sample.frame}
-                if sample.instance is not None:
-                    entry["instance"] = sample.instance
-                entry["reason"] = reason
-                failures[method.name].append(entry)
-                reasons[method.name][i] = reason
-            else:
-                for key, value in values.items():
-                    errors[method.name][key][i] = value
+                reasons[method.name][i] = " ".join(str(failure).split())
             bar.update(1)
     bar.close()
+    shapes = [index.get(s) for s in dataset]
     categories = np.array([s.category for s in dataset])
     has_mesh = np.array([s.mesh_path is not None for s in dataset])
     names = dataset.categories
     notes = []
     if not has_mesh.all():
-        missing = sorted({s.sequence for s in dataset if s.mesh_path is None})
-        notes.append(f"{int((~has_mesh).sum())} of {n} samples have no true mesh (sequences {', '.join(missing)}): F-score thresholds count only the other {int(has_mesh.sum())}; their pose and IoU are evaluated.")
+        missing = sorted({s.sequence if s.instance is None else s.label for s in dataset if s.mesh_path is None})
+        notes.append(f"{int((~has_mesh).sum())} of {n} samples have no true mesh ({', '.join(missing)}): F-score thresholds count only the other {int(has_mesh.sum())}; their pose and IoU are evaluated.")
     results = []
     for method in methods:
-        failed = failures[method.name]
+        errors = score_method(dataset, predicted[method.name], shapes, config.fscore_threshold)
+        failed = []
+        for i, sample in enumerate(dataset):
+            if reasons[method.name][i] is None and errors.failed[i]:
+                reasons[method.name][i] = errors.failure[i]
+            if reasons[method.name][i] is not None:
+                entry = {"sequence": sample.sequence, "frame": sample.frame}
+                if sample.instance is not None:
+                    entry["instance"] = sample.instance
+                entry["reason"] = reasons[method.name][i]
+                failed.append(entry)
         if isinstance(method, PredictionsFile):
             notes.extend(f"{method.name}: {method.path.name} line {number} ignored: {reason}" for number, reason in method.problems)
             unmatched = method.unmatched(dataset.samples)
             if unmatched:
                 notes.append(f"{method.name}: {len(unmatched)} predictions name no sample of the dataset and were ignored (first: {'/'.join(p for p in unmatched[0] if p)}).")
+        values = {"translation": errors.position_error, "rotation": errors.rotation_error, "iou": errors.iou, "chamfer": errors.chamfer, "fscore": errors.fscore}
         rows = []
         for i, sample in enumerate(dataset):
             row = {"method": method.name, "sequence": sample.sequence, "frame": sample.frame, "instance": sample.instance, "category": sample.category, "symmetry": sample.symmetry, "has_mesh": int(has_mesh[i]), "failure": reasons[method.name][i]}
-            row.update({k: float(errors[method.name][k][i]) for k in ERROR_KINDS})
+            row.update({k: float(v[i]) for k, v in values.items()})
             rows.append(row)
         results.append(
             MethodResult(
                 name=method.name,
                 samples=n,
                 failed=failed,
-                precision=[precision_at(errors[method.name], t, categories, has_mesh, names) for t in config.thresholds],
-                curves=curves(errors[method.name], config.curves, has_mesh),
+                precision=precision_rows(errors, config.thresholds, categories, has_mesh, names),
+                curves=curves(errors, config.curves, has_mesh),
                 rows=rows,
             )
         )
     return Evaluation(dataset, results, notes)
-

@@ -16,6 +16,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from evaluate.cli import main
+from evaluate.methods import Method, Prediction
 from sequences.errors import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -232,3 +233,69 @@ def test_console_entry_exit_code(tmp_path):
     run = subprocess.run([sys.executable, "-c", "from evaluate.cli import entry; entry()", "--config", str(bad)], capture_output=True, text=True, cwd=REPO)
     assert run.returncode == 2
     assert run.stderr.strip().count("\n") == 0 and "bad.yaml" in run.stderr and "seed" in run.stderr
+
+
+CALLS: list = []
+
+
+class Recorder(Method):
+    """Stands in for a method run here: records what it was given, answers the masked points' centroid."""
+
+    def __init__(self, config=None):
+        self.config = config
+
+    def inference(self, color, depth, mask, category, camera):
+        CALLS.append((color, depth, mask, category, camera))
+        points, _ = camera.backproject(depth, mask)
+        return Prediction(points.mean(axis=0), [0, 0, 0, 1], [0.1, 0.1, 0.1])
+
+
+def test_methods_run_here_on_frames(redwood75_dir, tmp_path):
+    """Frames in both layouts (ours for 00517, cpas_toolbox's for 00595): the method gets the colour
+    image, the depth in metres and the instance mask of the visible object (the posed true mesh,
+    rendered here in front of a wall at 2 m)."""
+    from evaluate.datasets.masks import render_depth
+    from evaluate.datasets.redwood75 import Redwood75Dataset
+
+    raw = json.loads((redwood75_dir / "annotations.json").read_text())
+    small = tmp_path / "small"
+    small.mkdir()
+    (small / "annotations.json").write_text(json.dumps({k: raw[k] for k in ("00517", "00595")}))
+    for k in ("00517", "00595"):
+        (small / f"{k}.obj").symlink_to(redwood75_dir / "meshes" / f"{k}.obj")
+    frames = tmp_path / "frames"
+    data = Redwood75Dataset(small)
+    expected = {}
+    for i, sample in enumerate(data):
+        mesh = data.mesh(sample)
+        ann = next(a for a in raw[sample.sequence]["pose_anns"] if a["rgb_file"].startswith(sample.frame))
+        seq = frames / sample.sequence if sample.sequence == "00517" else frames / "bowl" / "rgbd" / sample.sequence
+        (seq / "rgb").mkdir(parents=True, exist_ok=True)
+        (seq / "depth").mkdir(parents=True, exist_ok=True)
+        rendered = render_depth(np.asarray(mesh.vertices) @ sample.pose[:3, :3].T + sample.position, mesh.faces, sample.camera)
+        depth_mm = np.where(rendered > 0, np.round(rendered * 1000), 2000).astype(np.uint16)
+        Image.fromarray(depth_mm).save(seq / "depth" / ann["depth_file"])
+        Image.fromarray(np.full((480, 640, 3), 10 * i, np.uint8)).save(seq / "rgb" / ann["rgb_file"])
+        expected[10 * i] = depth_mm < 2000
+    CALLS.clear()
+    out = tmp_path / "out"
+    assert _run(["--dataset", str(small), "--frames", str(frames), "--method", f"rec={__name__}:Recorder", "--method", "box", "--out", str(out), "--surface-samples", "500"]) == 0
+    assert len(CALLS) == 10
+    for color, depth, mask, category, camera in CALLS:
+        shade = int(color[0, 0, 0])
+        assert color.shape == (480, 640, 3) and color.dtype == np.uint8
+        assert depth.dtype == np.float32 and float(depth[0, 0]) == pytest.approx(2.0)
+        assert category in ("bottle", "bowl")
+        # the mask is the object's pixels (those nearer than the wall), but for the mesh's silhouette
+        # edge, where the rounded depth can still be within 1 cm of the wall
+        silhouette = expected[shade]
+        assert (mask & ~silhouette).sum() == 0
+        assert mask.sum() >= 0.98 * silhouette.sum()
+    results = json.loads((out / "results.json").read_text())["methods"]
+    assert results["rec"]["samples"] == 10 and results["rec"]["failed"] == []
+    assert results["box"]["samples"] == 10
+    errors = [r for r in csv.DictReader((out / "errors.csv").open()) if r["method"] == "rec"]
+    # the visible surface's centroid lies within the object's box: within half its diagonal of the centre
+    for r in errors:
+        sample = next(s for s in data if s.frame == r["frame"] and s.sequence == r["sequence"])
+        assert 0 < float(r["translation"]) < np.linalg.norm(sample.extents) / 2
