@@ -153,6 +153,14 @@ class PlainMethod(Method):
         return Prediction(points.mean(axis=0), [0, 0, 0, 1], [0.1, 0.1, 0.1])
 
 
+class BrokenMethod(Method):
+    def __init__(self, config=None):
+        pass
+
+    def inference(self, color, depth, mask, category, camera):
+        return {}["position"]
+
+
 class NotAMethod:
     pass
 
@@ -195,6 +203,9 @@ def test_frame_method_failures_are_reported():
     Inputs.depth = np.ones((480, 640), np.float32)
     p = method.predict(_sample(), Inputs())
     np.testing.assert_allclose(p.position, [0, 0, 1], atol=1e-9)
+    # any exception of a method is a failed sample, named in the reason
+    with pytest.raises(PredictionFailure, match="KeyError"):
+        get_method(f"b={__name__}:BrokenMethod").predict(_sample(), Inputs())
 
 
 # ---------------------------------------------------------------- cpas_toolbox adapter
@@ -266,3 +277,25 @@ def test_cpas_adapter_runs_cpas_class_unchanged():
     Inputs.depth = np.full((480, 640), np.nan, np.float32)
     with pytest.raises(PredictionFailure, match="position is not finite"):
         method.predict(sample, Inputs())
+
+
+def test_reconstruction_file_formats(tmp_path):
+    import trimesh
+
+    from evaluate.methods.predictions import load_reconstruction
+
+    box = trimesh.creation.box(extents=[0.1, 0.2, 0.3])
+    box.export(tmp_path / "mesh.ply")
+    box.export(tmp_path / "mesh.obj")
+    points = np.random.default_rng(0).uniform(-0.05, 0.05, (20, 3))
+    trimesh.PointCloud(points).export(tmp_path / "cloud.ply")
+    np.savetxt(tmp_path / "cloud.xyz", points)
+    for name in ("mesh.ply", "mesh.obj"):
+        mesh = load_reconstruction(tmp_path / name)
+        assert len(mesh.faces) == 12
+        np.testing.assert_allclose(np.ptp(mesh.vertices, axis=0), [0.1, 0.2, 0.3])
+    for name in ("cloud.ply", "cloud.xyz"):
+        np.testing.assert_allclose(load_reconstruction(tmp_path / name), points, atol=1e-7)
+    np.save(tmp_path / "flat.npy", np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="expected \\(N, 3\\)"):
+        load_reconstruction(tmp_path / "flat.npy")

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from evaluate.datasets import Dataset, Sample
+from sequences.errors import InputError
 
 from .base import Method, Prediction
 
@@ -77,10 +78,11 @@ class FrameMethod(SampleMethod):
             raise PredictionFailure("empty instance mask (object not visible)")
         try:
             prediction = self.method.inference(inputs.color, inputs.depth, mask, sample.category, sample.camera)
-        except PredictionFailure:
+        except (PredictionFailure, InputError, KeyboardInterrupt):
             raise
-        except (ValueError, ArithmeticError, RuntimeError, np.linalg.LinAlgError) as error:
-            # a method failing on one frame is a wrong answer for that frame, not the end of the run
+        except Exception as error:
+            # a method failing on one frame is a wrong answer for that frame, not the end of a long
+            # run; the exception type and message are listed with the failed sample
             raise PredictionFailure(f"method raised {error.__class__.__name__}: {' '.join(str(error).split())}"[:300]) from error
         return check_prediction(prediction)
 
