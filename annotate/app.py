@@ -214,9 +214,10 @@ def resolve_sequence(path: str | None) -> Path:
         return Path(path)
     try:
         from sequences.sample import sample_sequence
+
+        return Path(sample_sequence())
     except ImportError as error:
         raise InputError(None, f"no sequence given and the bundled sample is not available ({error}); run: annotate SEQ") from error
-    return Path(sample_sequence())
 
 
 def serve(args) -> int:

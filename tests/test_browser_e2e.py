@@ -1,0 +1,154 @@
+"""End to end: ``annotate SEQ`` in a subprocess, driven in headless Chromium through Playwright.
+
+Skipped with a reason when Playwright or Debian's /usr/bin/chromium is missing (no browser
+download is attempted). Set ANNOTATE_E2E_SEQ to a sequence folder to run on it instead of the
+small generated one, and ANNOTATE_E2E_SCREENSHOT to a path to keep the screenshot (this is how
+docs/screenshot.png is made).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_app_fixtures import make_sequence
+
+from sequences.annotation import load_annotation
+from sequences.reader import open_sequence
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+REPO = Path(__file__).resolve().parents[1]
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+
+def _playwright():
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("Python Playwright is not installed (pip install playwright)")
+    if not CHROMIUM.exists():
+        pytest.skip(f"no Chromium at {CHROMIUM} (Debian package chromium); browser downloads are not attempted")
+    return sync_playwright
+
+
+@pytest.fixture
+def sequence(tmp_path):
+    given = os.environ.get("ANNOTATE_E2E_SEQ")
+    if given:
+        return Path(given)
+    root, _ = make_sequence(tmp_path / "e2e_seq", frames=4)
+    return root
+
+
+@pytest.fixture
+def server(sequence, tmp_path):
+    """``annotate SEQ --port 0`` as a subprocess; yields (url, document path); killed at the end."""
+    command = [sys.executable, "-c", "from annotate.cli import entry; entry()", str(sequence), "--port", "0"]
+    log_path = tmp_path / "annotate.log"
+    log = open(log_path, "w")  # a file, not a pipe: nobody reads the server's output while it runs
+    process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, text=True)
+    url = None
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None:
+        match = re.search(r"open (http://\S+)", log_path.read_text())
+        if match:
+            url = match.group(1)
+            break
+        time.sleep(0.2)
+    if url is None:
+        process.kill()
+        log.close()
+        pytest.fail("annotate did not print its URL:\n" + log_path.read_text())
+    try:
+        yield url, sequence / "annotation.yaml"
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        log.close()
+
+
+def _variance(png: bytes, box: dict) -> float:
+    """Summed per-channel pixel variance of the screenshot inside ``box`` (the 3D canvas)."""
+    from PIL import Image
+
+    image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64)
+    x0, y0 = int(box["x"]), int(box["y"])
+    image = image[y0 : y0 + int(box["height"]), x0 : x0 + int(box["width"])]
+    return float(image.reshape(-1, 3).var(axis=0).sum())
+
+
+def _wait_for_file_change(path: Path, before: str | None, timeout: float = 120.0) -> str:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        text = path.read_text() if path.exists() else None
+        if text is not None and text != before:
+            return text
+        time.sleep(0.2)
+    raise AssertionError(f"{path} did not change within {timeout} s")
+
+
+def test_annotate_in_headless_chromium(server, tmp_path):
+    sync_playwright = _playwright()
+    url, document = server
+    before = document.read_text() if document.exists() else None
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1200, "height": 760})
+            page.goto(url)
+            page.wait_for_selector("canvas", timeout=120_000)
+            page.get_by_text("frame 1/", exact=False).first.wait_for(timeout=120_000)
+            time.sleep(1.0)  # let the point cloud and the images arrive and render
+            shot = page.screenshot(timeout=180_000)  # software WebGL on a loaded 2-core machine is slow
+            (tmp_path / "screenshot.png").write_bytes(shot)
+            keep = os.environ.get("ANNOTATE_E2E_SCREENSHOT")
+            if keep:
+                Path(keep).write_bytes(shot)
+            box = page.locator("canvas").first.bounding_box()
+            assert box is not None and box["width"] > 100 and box["height"] > 100
+            assert _variance(shot, box) > 100.0, "the 3D view is blank"
+
+            # a second tab on the same server sees the same session
+            other = browser.new_page(viewport={"width": 480, "height": 360})  # small: software WebGL is slow
+            other.goto(url)
+            other.get_by_text("frame 1/", exact=False).first.wait_for(timeout=120_000)
+
+            page.get_by_role("button", name="Next frame").first.click()
+            page.get_by_text("frame 2/", exact=False).first.wait_for(timeout=120_000)
+            other.get_by_text("frame 2/", exact=False).first.wait_for(timeout=120_000)
+            assert before == (document.read_text() if document.exists() else None)  # changing frames is not an edit
+
+            page.get_by_role("button", name="Place box in this frame").first.click()
+            text = _wait_for_file_change(document, before)
+            doc = load_annotation(document)
+            frame_2 = open_sequence(document.parent).ids[1]
+            assert doc.frames[frame_2].source == "manual"
+
+            from annotate.app_tracking import tracking_engine
+
+            if tracking_engine() is not None:
+                page.get_by_role("button", name="Refine this frame").first.click()
+                _wait_for_file_change(document, text)
+                doc = load_annotation(document)
+                assert doc.frames[frame_2].source == "refined"
+                other.get_by_text("refined", exact=False).first.wait_for(timeout=120_000)
+            assert document.with_name(document.name + ".bak").exists() or before is None
+        finally:
+            browser.close()
