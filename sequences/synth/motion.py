@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation, RotationSpline
 #: Frames per 90-degree key of the orientation path (about 5 degrees per frame).
 FRAMES_PER_KEY = 18
 #: Frames per grasp before the hand regrasps.
-FRAMES_PER_GRASP = 60
+FRAMES_PER_GRASP = 45
 #: Hand dimensions, metres: palm semi-axes (across, along the fingers, thickness), finger and thumb radii.
 PALM = np.array([0.042, 0.046, 0.013])
 FINGER_RADIUS = 0.0085
@@ -154,28 +154,37 @@ class GraspPlanner:
         answer = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
         return answer["points"].numpy().astype(np.float64), answer["primitive_normals"].numpy().astype(np.float64)
 
-    def plan(self, rotation: np.ndarray, position: np.ndarray, elbow: np.ndarray, avoid: list[np.ndarray], first: int, last: int) -> Grasp:
-        """A grasp held over frames first..last, chosen at the object pose (rotation, position) of its middle frame.
+    def plan(self, rotations: np.ndarray, positions: np.ndarray, elbow: np.ndarray, avoid: list[np.ndarray], first: int, last: int) -> Grasp:
+        """A grasp held over frames first..last, given the object's rotations (K, 3, 3) and positions (K, 3) over them.
 
-        The palm goes on the side facing the elbow (so the forearm reaches it from behind or the
-        side), away from earlier contacts in ``avoid``; the fingers wrap around and occlude the front.
+        The palm goes where, through the whole hold, the surface faces sideways toward the elbow
+        and never the camera (so the forearm reaches it from behind or the side and the fingers
+        wrap over the front), away from earlier contacts in ``avoid``.
         """
-        to_elbow = _unit(elbow - position)
-        view = _unit(position)
-        lateral = _unit(to_elbow - (to_elbow @ view) * view)
-        normals_cam = self.sample_normals @ rotation.T
-        # palm on the side toward the elbow, slightly behind: the fingers then wrap over the front
-        score = normals_cam @ lateral - 1.5 * np.abs(normals_cam @ view - 0.25) + self.rng.uniform(0.0, 0.5, len(self.samples))
+        middle = len(rotations) // 2
+        to_elbow = _unit(elbow - positions)  # (K, 3)
+        view = _unit(positions)
+        lateral = _unit(to_elbow - np.einsum("kj,kj->k", to_elbow, view)[:, None] * view)
+        normals = _unit(self.sample_normals)
+        # per candidate: fingers wrap around the object's y axis when the palm is on the side, else across x;
+        # the wrist (behind the fingers) points toward the elbow at the middle of the hold
+        around = np.where(np.abs(normals[:, 1:2]) < 0.85, np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]))
+        fingers = _unit(np.cross(normals, around))
+        fingers *= np.where((fingers @ rotations[middle].T) @ to_elbow[middle] > 0, -1.0, 1.0)[:, None]
+        wrist = self.samples + normals * PALM[2] + fingers * WRIST[1]
+        normals_cam = np.einsum("kij,nj->kni", rotations, normals)  # (K, N, 3)
+        toward_elbow = np.einsum("kni,ki->kn", normals_cam, lateral)
+        along_view = np.einsum("kni,ki->kn", normals_cam, view)  # > 0: faces away from the camera
+        wrist_behind = np.einsum("kij,nj->kni", rotations, wrist) @ np.array([0.0, 0.0, 1.0])  # wrist depth minus centre depth
+        score = (toward_elbow - 1.5 * np.abs(along_view - 0.25)).mean(axis=0)
+        score -= 2.0 * np.clip(-along_view - 0.2, 0, None).max(axis=0)  # the palm never faces the camera
+        score -= 4.0 * np.clip(-wrist_behind / 0.05, 0, None).max(axis=0)  # nor does the wrist come in front (the forearm would hide all)
+        score = score + self.rng.uniform(0.0, 0.3, len(self.samples))
         for previous in avoid:
             near = np.linalg.norm(self.samples - previous, axis=1) < 0.45 * self.diagonal
             score = score - 3.0 * near
         pick = int(np.argmax(score))
-        contact, normal = self.samples[pick], _unit(self.sample_normals[pick])
-        # fingers wrap around the object's y axis when the palm is on the side, else across x
-        around = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.85 else np.array([1.0, 0.0, 0.0])
-        fingers = _unit(np.cross(normal, around))
-        if (rotation @ fingers) @ to_elbow > 0:  # the wrist (behind the fingers) points toward the elbow
-            fingers = -fingers
+        contact, normal, fingers = self.samples[pick], normals[pick], fingers[pick]
         across = np.cross(fingers, normal)
         T = np.eye(4)
         T[:3, :3] = np.stack([across, fingers, normal], axis=1)
@@ -252,8 +261,8 @@ def plan_grasps(frames: int, trajectory: Trajectory, planner: GraspPlanner, elbo
         first = 0 if k == 0 else int(round(edges[k])) + window // 2 + window % 2
         last = frames - 1 if k == count - 1 else int(round(edges[k + 1])) - window // 2 - 1
         first, last = min(first, frames - 1), max(min(last, frames - 1), min(first, frames - 1))
-        middle = (first + last) // 2
-        grasps.append(planner.plan(trajectory.rotations[middle], trajectory.positions[middle], elbow, [g.contact for g in grasps], first, last))
+        held = slice(first, last + 1)
+        grasps.append(planner.plan(trajectory.rotations[held], trajectory.positions[held], elbow, [g.contact for g in grasps], first, last))
     return grasps
 
 
