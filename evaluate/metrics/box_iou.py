@@ -234,9 +234,9 @@ def box_iou(extents_a, T_a, extents_b, T_b) -> float:
 
 # --- symmetric IoU -------------------------------------------------------------------------------
 
-_GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
 _SUBDIVIDE = 8  # finer grid inside intervals that may hold the maximum
-_REFINE = 4  # golden-section brackets per pair, around its best samples
+_REFINE = 3  # brackets refined per pair: its highest local maxima
+_ZOOM = 8  # points per bracket and refinement step (the bracket shrinks ~4.5x per step)
 
 
 def _rotated_about_y(T: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -263,7 +263,7 @@ def _aligned_angles(T_gt: np.ndarray, T_pred: np.ndarray) -> np.ndarray:
     return np.concatenate([base, base + np.pi / 2], axis=1)
 
 
-def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 180, xtol: float = 1e-9,
+def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 90, xtol: float = 1e-9,
                             return_angle: bool = False):
     """Exact max over rotations of the prediction about its own y axis of the box IoU, for N pairs.
 
@@ -279,8 +279,9 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
        L = e_y (e_x^2 + e_z^2) / max(V_gt, V_pred) bounds |dIoU/dphi|: rotating about y, only the four
        side faces sweep volume, at normal speed at most |z| (x faces) or |x| (z faces), so
        |dV_inter/dphi| <= e_y (e_x^2 + e_z^2) / 2 and dIoU/dV_inter <= 2 / union.
-    2. Each bracket is refined by a golden-section search (a bounded scalar optimiser) to ``xtol``
-       radians, vectorised over all brackets and pairs.  Inside a bracket of width 2h = 1 degree the
+    2. Each bracket is refined by a bounded zooming search (a generalised golden-section search: 8
+       interior points per step, the bracket shrinking to the best point's neighbours, ~4.5x per step)
+       to ``xtol`` radians, vectorised over all brackets and pairs.  Inside a bracket of width 2h = 1 degree the
        IoU has at most one local maximum in practice (its pieces are ratios of low-order
        trigonometric polynomials, and the pieces change only where edges cross faces).
     3. The IoU is non-smooth exactly where faces of the two boxes turn parallel; the maximum often sits
@@ -307,7 +308,7 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
     grid_iou = iou_at(rows, grid_angles).reshape(n, grid)
     best = grid_iou.max(axis=1)
     best_angle = grid_angles.reshape(n, grid)[np.arange(n), grid_iou.argmax(axis=1)]
-    samples_rows, samples_angles, samples_values, samples_width = [rows], [grid_angles], [grid_iou.ravel()], [np.full(len(rows), h)]
+    samples_rows, samples_angles, samples_values = [rows], [grid_angles], [grid_iou.ravel()]
 
     def consider(rows: np.ndarray, angles: np.ndarray, values: np.ndarray) -> None:
         order = np.lexsort((values, rows))  # per row, the largest value last
@@ -337,31 +338,38 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
         f_values = iou_at(f_rows, f_angles)
         consider(f_rows, f_angles, f_values)
         samples_rows.append(f_rows), samples_angles.append(f_angles), samples_values.append(f_values)
-        samples_width.append(np.full(len(f_rows), h / _SUBDIVIDE))
-    # 2. golden-section search, maximising, on brackets around the _REFINE best samples of each pair
-    s_rows, s_angles = np.concatenate(samples_rows), np.concatenate(samples_angles)
-    s_values, s_width = np.concatenate(samples_values), np.concatenate(samples_width)
-    order = np.lexsort((-s_values, s_rows))
-    s_rows, s_angles, s_values, s_width = s_rows[order], s_angles[order], s_values[order], s_width[order]
-    first = np.searchsorted(s_rows, np.arange(n))
-    rank = np.arange(len(s_rows)) - first[s_rows]
-    pick = (rank < _REFINE) & (s_values > 0)
-    b_rows, centre, width = s_rows[pick], s_angles[pick], s_width[pick]
+    # 2. zooming search, maximising, on brackets around the local maxima of each pair's samples (in
+    # angle order; a local maximum's bracket runs from its left to its right neighbour), at most
+    # _REFINE per pair, the highest first, skipping those the Lipschitz bound rules out.
+    s_rows, s_angles, s_values = np.concatenate(samples_rows), np.concatenate(samples_angles), np.concatenate(samples_values)
+    order = np.lexsort((s_angles, s_rows))
+    s_rows, s_angles, s_values = s_rows[order], s_angles[order], s_values[order]
+    same_prev = np.r_[False, s_rows[1:] == s_rows[:-1]]
+    same_next = np.r_[s_rows[:-1] == s_rows[1:], False]
+    prev_v = np.where(same_prev, np.roll(s_values, 1), -np.inf)
+    next_v = np.where(same_next, np.roll(s_values, -1), -np.inf)
+    prev_a = np.where(same_prev, np.roll(s_angles, 1), s_angles - h)
+    next_a = np.where(same_next, np.roll(s_angles, -1), s_angles + h)
+    reach = lipschitz[s_rows] * np.maximum(s_angles - prev_a, next_a - s_angles)
+    peak = (s_values >= prev_v) & (s_values >= next_v) & (s_values > 0) & (s_values + reach >= best[s_rows])
+    k_rows, k_values, k_lo, k_hi = s_rows[peak], s_values[peak], prev_a[peak], next_a[peak]
+    order = np.lexsort((-k_values, k_rows))
+    k_rows, k_lo, k_hi = k_rows[order], k_lo[order], k_hi[order]
+    rank = np.arange(len(k_rows)) - np.searchsorted(k_rows, k_rows)
+    pick = rank < _REFINE
+    b_rows = k_rows[pick]
     if len(b_rows):
-        lo, hi = centre - width, centre + width
-        c, d = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
-        fc, fd = iou_at(b_rows, c), iou_at(b_rows, d)
-        consider(b_rows, c, fc)
-        consider(b_rows, d, fd)
+        lo, hi = k_lo[pick], k_hi[pick]
+        steps = np.arange(1, _ZOOM + 1) / (_ZOOM + 1)
         while np.max(hi - lo) > xtol:
-            keep_left = fc >= fd
-            hi = np.where(keep_left, d, hi)
-            lo = np.where(keep_left, lo, c)
-            new_x = np.where(keep_left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
-            f_new = iou_at(b_rows, new_x)
-            consider(b_rows, new_x, f_new)
-            c, d, fc, fd = (np.where(keep_left, new_x, d), np.where(keep_left, c, new_x),
-                            np.where(keep_left, f_new, fd), np.where(keep_left, fc, f_new))
+            x = lo[:, None] + (hi - lo)[:, None] * steps[None, :]  # (brackets, _ZOOM) interior points
+            f = iou_at(np.repeat(b_rows, _ZOOM), x.ravel()).reshape(-1, _ZOOM)
+            consider(np.repeat(b_rows, _ZOOM), x.ravel(), f.ravel())
+            j = np.argmax(f, axis=1)
+            # for a unimodal function the maximum lies between the neighbours of the best point
+            k = np.arange(len(j))
+            lo = np.where(j == 0, lo, x[k, np.maximum(j - 1, 0)])
+            hi = np.where(j == _ZOOM - 1, hi, x[k, np.minimum(j + 1, _ZOOM - 1)])
     best_angle = np.mod(best_angle, np.pi)
     return (best, best_angle) if return_angle else best
 
