@@ -2,8 +2,8 @@
 
     evaluate --dataset DIR [--frames ROOT] --method SPEC [--method SPEC ...] --out OUT [--config FILE]
 
-writes ``OUT/results.json``, ``OUT/table.md``, ``OUT/table.csv``, ``OUT/precision_curves.png`` and
-``OUT/errors.csv`` (see :mod:`evaluate.report`); options on the command line override the config file
+writes ``OUT/results.json``, ``OUT/table.md``, ``OUT/table.csv``, ``OUT/precision_curves.png``,
+``OUT/curves.json`` and ``OUT/errors.csv`` (see :mod:`evaluate.report`); options on the command line override the config file
 (:mod:`evaluate.config`).
 """
 

@@ -1,7 +1,7 @@
 """Writing an evaluation's outputs, each atomically: ``results.json`` (DESIGN.md's schema), the
 precision tables as Markdown and CSV (overall and per category, as the paper's Tables 2 and 3),
 precision-versus-threshold plots as PNG (the paper's Fig. 5: one panel per error kind, one line
-per method) and the per-sample errors as CSV.
+per method) with their numbers in ``curves.json``, and the per-sample errors as CSV.
 """
 
 from __future__ import annotations
@@ -183,5 +183,7 @@ def write_outputs(out: Path, dataset: str, results: list[MethodResult], categori
         "csv": write_text_atomic(out / "table.csv", csv_table(results, categories)),
         "errors": write_text_atomic(out / "errors.csv", errors_csv(results)),
     }
+    curves = {r.name: {kind: {"thresholds": grid.tolist(), "overall": values.tolist()} for kind, (grid, values) in r.curves.items()} for r in results}
+    paths["curves"] = write_text_atomic(out / "curves.json", json.dumps({"dataset": dataset, "methods": curves}, indent=1) + "\n")
     paths["plot"] = write_curves_png(out / "precision_curves.png", dataset, results)
     return paths

@@ -145,6 +145,11 @@ def test_end_to_end_numbers(redwood75_dir, predictions, tmp_path):
     # the plot is a PNG of the Fig. 5 layout
     with Image.open(out / "precision_curves.png") as image:
         assert image.format == "PNG" and image.size[0] > 3 * image.size[1]
+    curves = json.loads((out / "curves.json").read_text())["methods"]["mine"]
+    assert curves["position"]["thresholds"][:3] == [0.0, 0.005, 0.01]
+    assert curves["position"]["overall"][4] == pytest.approx(73 / 75)  # position alone at 2 cm: only the 2 failed fail
+    assert curves["position"]["overall"][2] == pytest.approx(68 / 75)  # at 1 cm, 00340 (moved 1.5 cm) fails too
+    assert curves["fscore"]["overall"][0] == pytest.approx(23 / 30)  # F >= 0 over the 30 with a mesh: not 00340 (no reconstruction), not the 2 failed
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left behind
 
 
