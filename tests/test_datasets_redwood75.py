@@ -157,3 +157,16 @@ def test_toolkit_output_without_meshes_folder(tmp_path, redwood75_dir):
     shutil.copy(redwood75_dir / "meshes" / "00517.obj", folder / "00517.obj")
     data = open_dataset(folder)
     assert {s.sequence for s in data if s.mesh_path is not None} == {"00517"}
+
+
+def test_masks_written_by_the_toolkit_are_used(tmp_path, redwood75_dir):
+    folder = _dataset_with(tmp_path, redwood75_dir, lambda d: None)
+    sample = Redwood75Dataset(folder).samples[0]
+    mask = np.zeros((480, 640), np.uint8)
+    mask[100:120, 200:260] = 255
+    (folder / "masks" / sample.sequence).mkdir(parents=True)
+    Image.fromarray(mask).save(folder / "masks" / sample.sequence / f"{sample.frame}.png")
+    data = Redwood75Dataset(folder)
+    assert data.samples[0].mask_path is not None and data.samples[1].mask_path is None
+    np.testing.assert_array_equal(data.mask(data.samples[0]), mask > 0)
+    assert data.mask(data.samples[1]).sum() > 1000  # no file: the box is ray-cast

@@ -6,6 +6,9 @@ ShapeNet x); samples come out in ShapeNet axes, remapped exactly as cpas_toolbox
 AnnotatedRedwoodDataset does with ``remap_y_axis: -y, remap_x_axis: z``: orientation
 q_raw * q(shapenet -> raw), extents permuted, mesh vertices rotated. ``scale`` is half the extents.
 
+Instance masks come from ``DIR/masks/<sequence>/<frame id>.png`` where ``reconstruct-sequence``
+wrote them, else from the posed true mesh (its box where there is no mesh), ray-cast.
+
 Frames (optional) are looked up under a root as ``ROOT/<sequence>/rgb|depth/<file>`` or
 cpas_toolbox's ``ROOT/<category>/rgbd/<sequence>/rgb|depth/<file>``; a ``camera.yaml`` in the
 sequence folder overrides Redwood's default camera.
@@ -26,9 +29,12 @@ from sequences.camera import Camera
 from sequences.errors import InputError
 
 from .base import Dataset, load_mesh_file
+from .frames import read_instance_ids
 from .sample import Sample
 
 ANNOTATIONS = "annotations.json"
+#: Instance masks that ``reconstruct-sequence`` writes next to the annotations: ``masks/<sequence>/<frame id>.png``.
+MASKS = "masks"
 _REDWOOD_NAME = re.compile(r"^(\d+)-(\d+)$")
 #: Quaternions further than this from unit norm are rejected rather than silently normalised.
 QUATERNION_NORM_TOLERANCE = 1e-3
@@ -130,6 +136,7 @@ class Redwood75Dataset(Dataset):
                     color_path=None if seq_dir is None else seq_dir / "rgb" / rgb,
                     depth_path=None if seq_dir is None else seq_dir / "depth" / depth,
                     mesh_path=mesh_path,
+                    mask_path=_existing(root / MASKS / sequence / f"{frame_id(rgb)}.png"),
                 )
             )
         keys = [s.frame for s in samples]
@@ -149,11 +156,22 @@ class Redwood75Dataset(Dataset):
         self.missing_meshes.append(sequence)
         return None
 
+    def mask(self, sample: Sample, depth: np.ndarray | None = None) -> np.ndarray:
+        """The instance mask ``reconstruct-sequence`` wrote (``masks/<sequence>/<frame id>.png``, non-zero =
+        object) where there is one, else the posed true mesh ray-cast with cpas_toolbox's occlusion rule."""
+        if sample.mask_path is not None:
+            return read_instance_ids(sample.mask_path, sample.camera) > 0
+        return super().mask(sample, depth)
+
     def _load_mesh(self, path: Path):
         mesh = load_mesh_file(path)
         # raw -> ShapeNet axes: a proper rotation, so faces keep their winding
         mesh.vertices = np.asarray(mesh.vertices) @ SHAPENET_FROM_RAW.T
         return mesh
+
+
+def _existing(path: Path) -> Path | None:
+    return path if path.is_file() else None
 
 
 def _sequence_folder(frames_root: Path | None, category: str, sequence: str) -> Path | None:
