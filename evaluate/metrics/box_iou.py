@@ -55,6 +55,7 @@ _OWN_B = _OWN_A + 6
 _FOREIGN_A = np.arange(4, 10)
 _FOREIGN_B = np.arange(0, 6)
 _CHUNK = 1024
+_FACES = 8  # A's 6 faces and B's +x, -x faces: the others have n_x = 0 in V = integral of x n_x dA
 
 
 def box_volume(extents) -> np.ndarray:
@@ -82,29 +83,31 @@ def _intersection_volume(half_a: np.ndarray, half_b: np.ndarray, R: np.ndarray, 
     normals = np.concatenate([normals_a, normals_b], axis=1)  # (M, 12, 3)
     offsets = np.concatenate([offsets_a, offsets_b], axis=1)  # (M, 12)
 
+    # Faces that can contribute to V = integral of x n_x dA (x: B's first axis): A's 6 and B's +-x.
     # Parametrise face F by B's coordinates (s, r) orthogonal to the B axis p most aligned with n_F.
-    proj = np.argmax(np.abs(normals), axis=2)  # (M, 12)
-    s_axis, r_axis = (proj + 1) % 3, (proj + 2) % 3
-    n_fp, n_fs, n_fr = _pick(normals, proj), _pick(normals, s_axis), _pick(normals, r_axis)
+    nf, of = normals[:, :_FACES], offsets[:, :_FACES]
+    proj = np.argmax(np.abs(normals), axis=2)  # (M, 12): also needed for the planes as constraints
+    s_axis, r_axis = (proj[:, :_FACES] + 1) % 3, (proj[:, :_FACES] + 2) % 3
+    n_fp, n_fs, n_fr = _pick(nf, proj[:, :_FACES]), _pick(nf, s_axis), _pick(nf, r_axis)
     abs_fp, sign_fp = np.abs(n_fp), np.sign(n_fp)
 
-    nk = normals[:, _OTHER]  # (M, 12, 10, 3)
-    ok = offsets[:, _OTHER]  # (M, 12, 10)
-    face_axes = lambda axis: np.broadcast_to(axis[..., None], (M, 12, 10))  # noqa: E731
-    n_kp, n_ks, n_kr = (_pick(nk, face_axes(a)) for a in (proj, s_axis, r_axis))
+    other = _OTHER[:_FACES]
+    nk = normals[:, other]  # (M, 8, 10, 3)
+    ok = offsets[:, other]  # (M, 8, 10)
+    face_axes = lambda axis: np.broadcast_to(axis[..., None], (M, _FACES, 10))  # noqa: E731
+    n_kp, n_ks, n_kr = (_pick(nk, face_axes(a)) for a in (proj[:, :_FACES], s_axis, r_axis))
     # Constraint n_k·x <= o_k for x on face F, x_p eliminated, scaled by |n_Fp| > 0.  The operation order
     # matters: for a face of A and the B plane with the same normal direction it yields exactly the
     # negation of the B face's constraint from that A plane (see the module docstring).
     sk = sign_fp[..., None] * n_kp
     a_s = abs_fp[..., None] * n_ks - sk * n_fs[..., None]
     a_r = abs_fp[..., None] * n_kr - sk * n_fr[..., None]
-    b = abs_fp[..., None] * ok - sk * offsets[..., None]
+    b = abs_fp[..., None] * ok - sk * of[..., None]
 
     # Same-direction pairs sharing the projection axis: give the strip to A's face.
-    proj_k = proj[:, _OTHER]
-    same_dir = (proj_k == proj[..., None]) & (np.sign(n_kp) == sign_fp[..., None])
-    face_is_a = (np.arange(12) < 6)[None, :, None]
-    other_is_a = (_OTHER < 6)[None]
+    same_dir = (proj[:, other] == proj[:, :_FACES, None]) & (np.sign(n_kp) == sign_fp[..., None])
+    face_is_a = (np.arange(_FACES) < 6)[None, :, None]
+    other_is_a = (other < 6)[None]
     # Only nearly parallel pairs need it (|a| ~ sine of the angle between the planes); elsewhere a shift
     # would open a gap of width tau along the seam for nothing.
     same_dir &= np.hypot(a_s, a_r) < _PARALLEL
@@ -113,21 +116,25 @@ def _intersection_volume(half_a: np.ndarray, half_b: np.ndarray, R: np.ndarray, 
     b = b + shift
 
     # Faces whose own quad lies wholly outside one of the other box's planes are empty: skip them.
-    F = M * 12
-    a_s, a_r, b = a_s.reshape(F, 10), a_r.reshape(F, 10), b.reshape(F, 10)
-    tol_f = np.repeat(tol, 12)
-    a_s3, a_r3, b3, tol3 = (x.reshape(M, 12, -1) for x in (a_s, a_r, b, tol_f[:, None]))
+    F = M * _FACES
+    tol_f = np.repeat(tol, _FACES)
     active = np.concatenate([
-        _quad_meets_other_box(a_s3[:, :6], a_r3[:, :6], b3[:, :6], tol3[:, :6], _OWN_A, _FOREIGN_A),
-        _quad_meets_other_box(a_s3[:, 6:], a_r3[:, 6:], b3[:, 6:], tol3[:, 6:], _OWN_B, _FOREIGN_B),
+        _quad_meets_other_box(a_s[:, :6], a_r[:, :6], b[:, :6], tol[:, None, None], _OWN_A, _FOREIGN_A),
+        _quad_meets_other_box(a_s[:, 6:], a_r[:, 6:], b[:, 6:], tol[:, None, None], _OWN_B, _FOREIGN_B),
     ], axis=1).reshape(F)
-    area = np.zeros(F)
+    a_s, a_r, b = a_s.reshape(F, 10), a_r.reshape(F, 10), b.reshape(F, 10)
+    moments = np.zeros((3, F))  # area, integral of s, integral of r, in the (s, r) plane
     rows = np.flatnonzero(active)
-    for start in range(0, len(rows), _CHUNK):  # chunks keep the (faces, 45, 10) arrays in cache
+    for start in range(0, len(rows), _CHUNK):  # chunks keep the (faces, 10, 45) arrays in cache
         sel = rows[start:start + _CHUNK]
-        area[sel] = _polygon_areas(a_s[sel], a_r[sel], b[sel], tol_f[sel])
-    area = area.reshape(M, 12) / abs_fp  # true areas of the face polygons
-    return np.einsum("mf,mf->m", area, offsets) / 3.0
+        moments[:, sel] = _polygon_moments(a_s[sel], a_r[sel], b[sel], tol_f[sel])
+    area, ms, mr = (m.reshape(M, _FACES) for m in moments)
+    # integral of x n_x dA over each face polygon (dA = dA_sr / |n_Fp|)
+    n_fx = nf[..., 0]
+    x_is_p = proj[:, :_FACES] == 0
+    integral_x = np.where(x_is_p, (of * area - n_fs * ms - n_fr * mr) / abs_fp,
+                          n_fx / abs_fp * np.where(s_axis == 0, ms, mr))
+    return integral_x.sum(axis=1)
 
 
 def _pick(x: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -153,8 +160,9 @@ def _quad_meets_other_box(a_s, a_r, b, tol, own, foreign):
     return ~np.any(np.all(r > tol[..., None], axis=-2), axis=-1)
 
 
-def _polygon_areas(a_s, a_r, b, tol):
-    """Areas of the convex polygons {p : a_s p_s + a_r p_r <= b (+tol)}, one per row; rows are (10,)."""
+def _polygon_moments(a_s, a_r, b, tol):
+    """Area and first moments (integral of s, of r) of the convex polygons {p : a_s p_s + a_r p_r <= b (+tol)},
+    one per row (rows are (10,) lines); shape (3, rows)."""
     n = len(a_s)
     ps, pr, valid = _line_intersections(a_s, a_r, b, _PAIR_K, _PAIR_L)
     # Residuals of all 45 candidates against all 10 lines as one batched matrix product; the (10, 45)
@@ -165,19 +173,26 @@ def _polygon_areas(a_s, a_r, b, tol):
     feasible = valid & (worst <= tol[:, None])
     count = feasible.sum(axis=1)
     denom = np.maximum(count, 1)
-    qs = ps - (np.where(feasible, ps, 0.0).sum(axis=1) / denom)[:, None]
-    qr = pr - (np.where(feasible, pr, 0.0).sum(axis=1) / denom)[:, None]
+    cs = np.where(feasible, ps, 0.0).sum(axis=1) / denom
+    cr = np.where(feasible, pr, 0.0).sum(axis=1) / denom
+    qs, qr = ps - cs[:, None], pr - cr[:, None]
     # Sort by a pseudo-angle (monotone in the true angle, cheaper than arctan2).
     d = np.abs(qs) + np.abs(qr)
     pseudo = np.where(d > 0, qr / np.where(d > 0, d, 1.0), 0.0)
     pseudo = np.where(qs >= 0, pseudo, 2.0 - pseudo)
     order = np.argsort(np.where(feasible, pseudo, np.inf), axis=1)
-    # Slots past the last feasible vertex repeat it, which adds nothing to the shoelace sum.
+    # Slots past the last feasible vertex repeat it, which adds nothing to the shoelace sums.
     slot = np.minimum(np.arange(45)[None, :], np.maximum(count - 1, 0)[:, None])
     idx = (np.take_along_axis(order, slot, axis=1) + 45 * np.arange(n)[:, None]).ravel()
     qs, qr = qs.ravel()[idx].reshape(n, 45), qr.ravel()[idx].reshape(n, 45)
-    cross = qs * np.roll(qr, -1, axis=1) - np.roll(qs, -1, axis=1) * qr
-    return np.where(count >= 3, 0.5 * np.abs(cross.sum(axis=1)), 0.0)
+    qs2, qr2 = np.roll(qs, -1, axis=1), np.roll(qr, -1, axis=1)
+    cross = qs * qr2 - qs2 * qr
+    area = 0.5 * cross.sum(axis=1)
+    m_s = ((qs + qs2) * cross).sum(axis=1) / 6.0
+    m_r = ((qr + qr2) * cross).sum(axis=1) / 6.0
+    sign = np.where(count >= 3, np.sign(area), 0.0)  # vertices sorted either way round; empty -> 0
+    area, m_s, m_r = sign * area, sign * m_s, sign * m_r
+    return np.stack([area, m_s + cs * area, m_r + cr * area])  # moments about the (s, r) origin
 
 
 def _iou_from_volumes(inter: np.ndarray, vol_a: np.ndarray, vol_b: np.ndarray) -> np.ndarray:
