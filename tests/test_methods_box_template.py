@@ -1,0 +1,242 @@
+"""The weights-free methods `box` and `template` against renders of known meshes at known poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from evaluate.geometry import quat_to_matrix
+from evaluate.methods.base import Prediction
+from evaluate.methods.box import BoxMethod, masked_points
+from evaluate.methods.template import (
+    TemplateMethod,
+    fibonacci_sphere,
+    rotations_taking_y_to,
+    super_fibonacci_rotations,
+    umeyama,
+)
+from evaluate.methods.templates import TEMPLATE_CATEGORIES, builtin_template
+from sequences.camera import Camera
+
+CAMERA = Camera()
+
+
+def render(mesh: trimesh.Trimesh, rotation: np.ndarray, position: np.ndarray, camera: Camera = CAMERA):
+    """Depth (H, W) float32 m (0 = miss) and mask (H, W) bool of ``mesh`` posed object->camera, by ray casting."""
+    vertices = np.asarray(mesh.vertices) @ rotation.T + position
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    rays = camera.pixel_rays().reshape(-1, 3)
+    length = np.linalg.norm(rays, axis=1, keepdims=True)
+    query = np.concatenate([np.zeros_like(rays), rays / length], axis=1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(query))["t_hit"].numpy()
+    depth = np.where(np.isfinite(hit), hit / length[:, 0], 0.0).reshape(camera.height, camera.width).astype(np.float32)
+    return depth, depth > 0
+
+
+def rotation_error_deg(truth: np.ndarray, predicted: np.ndarray, symmetric: bool) -> float:
+    """Angle between rotations; for y-symmetric objects the angle between the y axes."""
+    if symmetric:
+        return float(np.degrees(np.arccos(np.clip(truth[:, 1] @ predicted[:, 1], -1.0, 1.0))))
+    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(truth.T @ predicted).as_rotvec())))
+
+
+def frame(y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Object->camera rotation with object y and (the part of) z given in camera coordinates."""
+    y = y / np.linalg.norm(y)
+    z = z - (z @ y) * y
+    z = z / np.linalg.norm(z)
+    return np.stack([np.cross(y, z), y, z], axis=1)
+
+
+UPRIGHT = frame(np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0]))  # y up in the image, z towards the camera
+
+
+@pytest.fixture(scope="module")
+def template_method() -> TemplateMethod:
+    return TemplateMethod()
+
+
+# ------------------------------------------------------------------------------------ building blocks
+
+
+def test_builtin_templates_are_box_centred_shapenet_frames():
+    for category in TEMPLATE_CATEGORIES:
+        mesh = builtin_template(category)
+        np.testing.assert_allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-9)
+        assert mesh.is_watertight and mesh.volume > 0
+    bottle = builtin_template("bottle")
+    # The neck is at +y: the widest cross-section near the top is the neck's.
+    top = bottle.vertices[bottle.vertices[:, 1] > 0.09]
+    assert np.abs(top[:, [0, 2]]).max() == pytest.approx(0.013, abs=1e-6)
+    mug = builtin_template("mug")
+    assert mug.extents[2] > mug.extents[0] + 0.02  # the handle sticks out along +z
+    assert mug.vertices[:, 2].max() > -mug.vertices[:, 2].min() - 1e-9
+
+
+def test_super_fibonacci_rotations_cover_so3():
+    rotations = Rotation.from_matrix(super_fibonacci_rotations(3000))
+    probes = Rotation.random(500, random_state=np.random.default_rng(3).integers(1 << 31))
+    # Angle from each random probe to its nearest hypothesis: cos(angle / 2) = |<q1, q2>|.
+    dots = np.abs(probes.as_quat() @ rotations.as_quat().T).max(axis=1)
+    worst = np.degrees(2 * np.arccos(np.clip(dots, -1, 1))).max()
+    # 3000 uniform rotations leave no probe further than ~ (8 pi^2 / 3000 / (4/3 pi))^(1/3) rad-ish.
+    assert worst < 16.0
+    assert np.allclose(np.linalg.det(rotations.as_matrix()), 1.0)
+
+
+def test_rotations_taking_y_to_directions():
+    directions = fibonacci_sphere(200)
+    rotations = rotations_taking_y_to(directions)
+    np.testing.assert_allclose(rotations[:, :, 1], directions, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nji,njk->nik", rotations, rotations), np.broadcast_to(np.eye(3), (200, 3, 3)), atol=1e-12)
+    assert np.allclose(np.linalg.det(rotations), 1.0)
+
+
+def test_umeyama_recovers_a_known_similarity():
+    rng = np.random.default_rng(5)
+    source = rng.normal(size=(50, 3))
+    rotation = Rotation.random(random_state=11).as_matrix()
+    target = 1.7 * source @ rotation.T + np.array([0.1, -0.2, 0.3])
+    scale, found, translation = umeyama(source, target)
+    assert scale == pytest.approx(1.7, rel=1e-12)
+    np.testing.assert_allclose(found, rotation, atol=1e-12)
+    np.testing.assert_allclose(translation, [0.1, -0.2, 0.3], atol=1e-12)
+
+
+def test_masked_points_drop_background_pixels_on_the_mask():
+    mesh = builtin_template("can")
+    depth, mask = render(mesh, UPRIGHT, np.array([0.0, 0.0, 0.7]))
+    clean = masked_points(depth, mask, CAMERA)
+    assert len(clean) == mask.sum()  # nothing of the object itself is dropped
+    # Bleed the mask 4 pixels onto a wall 1 m behind the object.
+    import scipy.ndimage
+
+    bled = scipy.ndimage.binary_dilation(mask, iterations=4)
+    wall = np.where(mask, depth, np.float32(1.7))
+    points = masked_points(wall, bled, CAMERA)
+    assert len(points) == mask.sum()
+    assert points[:, 2].max() < 0.8
+
+
+# ------------------------------------------------------------------------------------ box
+
+
+def test_box_upright_can_position_extents_and_axis():
+    mesh = builtin_template("can")
+    position = np.array([0.05, 0.03, 0.8])
+    rotation = frame(np.array([0.0, -1.0, 0.0]), np.array([0.3, 0.0, -1.0]))
+    depth, mask = render(mesh, rotation, position)
+    prediction = BoxMethod().inference(np.zeros(depth.shape + (3,), np.uint8), depth, mask, "can", CAMERA)
+    assert isinstance(prediction, Prediction)
+    assert np.linalg.norm(prediction.position - position) < 0.02
+    np.testing.assert_allclose(prediction.extents, mesh.extents, rtol=0.1)
+    predicted = quat_to_matrix(prediction.orientation)
+    assert rotation_error_deg(rotation, predicted, symmetric=True) < 10.0
+    assert np.linalg.det(predicted) == pytest.approx(1.0)
+    # The reconstruction is the observed points in the predicted object frame, inside the box.
+    assert np.all(np.abs(prediction.reconstruction) <= prediction.extents / 2 + 0.01)
+
+
+def test_box_finds_a_tilted_bottles_neck():
+    mesh = builtin_template("bottle")
+    position = np.array([-0.04, 0.02, 0.75])
+    rotation = frame(np.array([0.8, 0.5, -0.3]), np.array([0.0, 0.0, -1.0]))  # pointing right and down
+    depth, mask = render(mesh, rotation, position)
+    prediction = BoxMethod().inference(None, depth, mask, "bottle", CAMERA)
+    assert rotation_error_deg(rotation, quat_to_matrix(prediction.orientation), symmetric=True) < 10.0
+    assert np.linalg.norm(prediction.position - position) < 0.02
+    np.testing.assert_allclose(prediction.extents, mesh.extents, rtol=0.15)
+
+
+# ------------------------------------------------------------------------------------ template
+
+
+def test_template_recovers_a_tilted_bottle(template_method):
+    mesh = builtin_template("bottle")
+    rotation = Rotation.random(random_state=2024).as_matrix()
+    position = np.array([0.03, -0.05, 0.7])
+    depth, mask = render(mesh, rotation, position)
+    prediction = template_method.inference(None, depth, mask, "bottle", CAMERA)
+    assert rotation_error_deg(rotation, quat_to_matrix(prediction.orientation), symmetric=True) < 10.0
+    assert np.linalg.norm(prediction.position - position) < 0.01
+    np.testing.assert_allclose(prediction.extents, mesh.extents, rtol=0.05)
+    assert isinstance(prediction.reconstruction, trimesh.Trimesh)
+    np.testing.assert_allclose(prediction.reconstruction.extents, prediction.extents, rtol=1e-9)
+
+
+def test_template_recovers_an_upside_down_mug_with_its_handle(template_method):
+    mesh = builtin_template("mug")
+    # Upside down and tilted towards the camera, handle pointing to the image's right.
+    rotation = frame(np.array([0.2, 0.8, -0.55]), np.array([1.0, 0.0, 0.2]))
+    position = np.array([0.0, 0.04, 0.65])
+    depth, mask = render(mesh, rotation, position)
+    prediction = template_method.inference(None, depth, mask, "mug", CAMERA)
+    assert rotation_error_deg(rotation, quat_to_matrix(prediction.orientation), symmetric=False) < 10.0
+    assert np.linalg.norm(prediction.position - position) < 0.01
+    np.testing.assert_allclose(prediction.extents, mesh.extents, rtol=0.05)
+
+
+def test_template_fits_a_scaled_template_from_a_folder_deterministically(tmp_path):
+    builtin_template("bowl").export(tmp_path / "bowl.obj")
+    method = TemplateMethod(templates=tmp_path)
+    mesh = builtin_template("bowl")
+    mesh.apply_scale(1.2)  # a bigger bowl than the template
+    rotation = Rotation.from_euler("xz", [-120.0, 35.0], degrees=True).as_matrix()  # seen from below, tilted
+    position = np.array([-0.02, 0.0, 0.8])
+    depth, mask = render(mesh, rotation, position)
+    first = method.inference(None, depth, mask, "bowl", CAMERA)
+    second = method.inference(None, depth, mask, "bowl", CAMERA)
+    assert rotation_error_deg(rotation, quat_to_matrix(first.orientation), symmetric=True) < 10.0
+    assert np.linalg.norm(first.position - position) < 0.01
+    np.testing.assert_allclose(first.extents, mesh.extents, rtol=0.05)
+    np.testing.assert_array_equal(first.orientation, second.orientation)
+    np.testing.assert_array_equal(first.position, second.position)
+
+
+def test_template_turns_a_can_upright():
+    mesh = builtin_template("can")
+    rotation = frame(np.array([0.3, 0.9, 0.2]), np.array([0.0, 0.0, -1.0]))  # upside down
+    depth, mask = render(mesh, rotation, np.array([0.0, 0.0, 0.6]))
+    prediction = TemplateMethod({"hypotheses": 500, "symmetric_hypotheses": 150}).inference(None, depth, mask, "can", CAMERA)
+    predicted = quat_to_matrix(prediction.orientation)
+    # The shape does not tell top from bottom: the up prior picks the flip whose y points up in the image.
+    assert rotation_error_deg(rotation @ np.diag([1.0, -1.0, -1.0]), predicted, symmetric=True) < 10.0
+    assert predicted[1, 1] < 0
+
+
+# ------------------------------------------------------------------------------------ bad input
+
+
+@pytest.mark.parametrize("method_class", [BoxMethod, TemplateMethod])
+def test_empty_or_depthless_mask_is_a_value_error(method_class):
+    method = method_class()
+    depth = np.full((480, 640), 0.7, np.float32)
+    with pytest.raises(ValueError, match="empty mask or no depth"):
+        method.inference(None, depth, np.zeros((480, 640), bool), "mug", CAMERA)
+    mask = np.zeros((480, 640), bool)
+    mask[200:260, 300:360] = True
+    with pytest.raises(ValueError, match="empty mask or no depth"):
+        method.inference(None, np.zeros_like(depth), mask, "mug", CAMERA)
+    with pytest.raises(ValueError, match="mask shape"):
+        method.inference(None, depth, mask[:100], "mug", CAMERA)
+    with pytest.raises(ValueError, match="floating point"):
+        method.inference(None, (depth * 1000).astype(np.uint16), mask, "mug", CAMERA)
+
+
+def test_unknown_template_category_and_options_are_value_errors(tmp_path):
+    depth, mask = render(builtin_template("can"), UPRIGHT, np.array([0.0, 0.0, 0.6]))
+    with pytest.raises(ValueError, match="no template for category 'laptop'"):
+        TemplateMethod().inference(None, depth, mask, "laptop", CAMERA)
+    with pytest.raises(ValueError, match="unknown template method options"):
+        TemplateMethod({"hypotheses": 10, "speed": "fast"})
+    with pytest.raises(ValueError, match="unknown box method options"):
+        BoxMethod({"percentile": 5})
+    with pytest.raises(ValueError, match="template folder does not exist"):
+        TemplateMethod(templates=tmp_path / "missing")
+    (tmp_path / "mug.obj").write_text("this is not a mesh\n")
+    with pytest.raises(ValueError, match="mug.obj"):
+        TemplateMethod(templates=tmp_path).inference(None, depth, mask, "mug", CAMERA)
