@@ -5,14 +5,17 @@ object-to-camera transform ``T`` (4, 4); the box is centred on the object origin
 
 Method (exact up to floating-point rounding).  The intersection A ∩ B of two boxes is a convex
 polyhedron whose every face lies on one of the 12 box planes; the face on plane F is the convex
-polygon ``plane F ∩ A ∩ B``.  Its volume follows from the divergence theorem,
+polygon ``plane F ∩ A ∩ B``.  Working in B's frame, the divergence theorem with the field (x, 0, 0)
+gives its volume,
 
-    V = 1/3 * sum_F  o_F * area_F          (o_F = n_F · x for any x on plane F, unit normal n_F),
+    V = sum_F  n_Fx * integral over face F of x dA,
 
-so the whole computation reduces to 12 convex polygons per pair, each the intersection of 10 half-planes
-in the plane of F.  A convex polygon given by half-planes has its vertices among the 45 pairwise
-intersections of the 10 boundary lines: we keep the feasible ones, sort them by angle about their mean
-and take the shoelace area.  All of this is fixed-size arrays, vectorised across pairs.
+where only faces with n_x != 0 contribute: A's 6 faces and B's two x faces (B's y and z faces have
+n_x = 0 exactly).  Each face polygon is the intersection of 10 half-planes in its plane; a convex
+polygon given by half-planes has its vertices among the 45 pairwise intersections of the 10 boundary
+lines: we keep the feasible ones, sort them by angle about their mean and take the shoelace area and
+first moments.  All of this is fixed-size arrays, vectorised across pairs (8 faces x 45 candidates x
+10 lines per pair; faces whose own quad misses the other box are skipped).
 
 Degenerate configurations are exact by construction, not by luck:
 
