@@ -340,3 +340,35 @@ def test_shape_index_reuses_one_tree_and_matches_direct_metrics():
     pred = sample_surface(box, n=3000, seed=1) * 1.02
     assert index.fscore(pred, 0.005) == fscore(index.points, pred, 0.005)
     assert index.chamfer_distance(pred) == pytest.approx(chamfer_distance(index.points, pred), abs=1e-15)
+
+
+def test_degenerate_configurations_in_random_frames_are_exact():
+    """5000 pairs on a grid: coplanar, touching, contained, disjoint and zero-volume boxes, the second
+    box turned by one of the 24 rotations that keep faces parallel, all in a random common frame.
+    Truth: the axis-aligned overlap in that frame."""
+    import itertools
+
+    rng = np.random.default_rng(0)
+    perms = []
+    for p in itertools.permutations(range(3)):
+        for s in itertools.product([1, -1], repeat=3):
+            M = np.zeros((3, 3))
+            M[range(3), p] = s
+            if np.linalg.det(M) > 0:
+                perms.append(M)
+    n = 5000
+    G = Rotation.random(n, random_state=3).as_matrix()
+    ea, eb = rng.integers(1, 5, (n, 3)) * 0.05, rng.integers(0, 5, (n, 3)) * 0.05
+    P = np.array(perms)[rng.integers(0, 24, n)]
+    ta, tb = rng.integers(-4, 5, (n, 3)) * 0.025, rng.integers(-4, 5, (n, 3)) * 0.025
+    Ta, Tb = np.tile(np.eye(4), (n, 1, 1)), np.tile(np.eye(4), (n, 1, 1))
+    Ta[:, :3, :3], Ta[:, :3, 3] = G, np.einsum("nij,nj->ni", G, ta)
+    Tb[:, :3, :3], Tb[:, :3, 3] = G @ P, np.einsum("nij,nj->ni", G, tb)
+    half_b = np.abs(np.einsum("nij,nj->ni", P, eb)) / 2
+    lo, hi = np.maximum(ta - ea / 2, tb - half_b), np.minimum(ta + ea / 2, tb + half_b)
+    inter = np.prod(np.clip(hi - lo, 0, None), axis=1)
+    va, vb = np.prod(ea, 1), np.prod(eb, 1)
+    union = va + vb - inter
+    expected = np.where((va > 0) & (vb > 0), inter / np.where(union > 0, union, 1), 0.0)
+    assert np.sum(expected > 0) > 500 and np.sum((expected == 0) & np.all(hi - lo >= 0, axis=1)) > 500  # overlaps, contacts
+    np.testing.assert_allclose(box_iou_batch(ea, Ta, eb, Tb), expected, atol=1e-13, rtol=0)
