@@ -60,7 +60,7 @@ class App:
             self.next_button = gui.add_button("Next frame", hint="hotkey N")
             self.timeline = gui.add_image(timeline_image(self.state.statuses(), 0), label="Timeline", format="png")
             gui.add_markdown(timeline_legend())
-            self.overlay = gui.add_image(first.image, label="Colour image and box", format="jpeg", jpeg_quality=85)
+            self.overlay = gui.add_image(first.image[::2, ::2], label="Colour image and box", format="jpeg", jpeg_quality=85)
         self.editing = EditingPanel(self)
         self.tracking = TrackingPanel(self)
         self.model = ModelPanel(self)
@@ -141,7 +141,8 @@ class App:
                 annotation = state.annotation
                 category, symmetry = annotation.category, annotation.symmetry
             frame = self.cache.get(index)
-            image = draw_box(frame.image, self.sequence.camera, pose.position, pose.orientation, extents)
+            # half size: enough for the panel and the frustum, a quarter of the drawing and encoding
+            image = draw_box(frame.image[::2, ::2], self.sequence.camera, pose.position, pose.orientation, extents, scale=0.5)
             with self.server.atomic():
                 if kind == "frame":
                     self.scene.show_frame(frame, image)

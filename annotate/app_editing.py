@@ -205,3 +205,4 @@ class EditingPanel:
         distance = sign * (float(np.asarray(event.target.position)[axis]) - rest)  # outward, metres
         new_position, new_extents = box_edits.drag_face(position, orientation, extents, axis, sign, distance)
         self.app.commit_box(new_position, orientation, extents=new_extents)
+        self.app.scene.place_face_handles(new_extents)  # back on the faces, also when the size did not change

@@ -26,6 +26,7 @@ class DisplayFrame:
     colors: np.ndarray
     image: np.ndarray
     median_depth: float
+    origin: np.ndarray  # (3,) float64 m: a point near the cloud's middle; positions are sent relative to it
 
 
 def load_display_frame(sequence: Sequence, index: int, stride: int = 2) -> DisplayFrame:
@@ -45,7 +46,10 @@ def load_display_frame(sequence: Sequence, index: int, stride: int = 2) -> Displ
     points[:, 2] = z
     colors = image[v, u]
     median = float(np.median(z)) if z.size else 1.0
-    return DisplayFrame(index, points, np.ascontiguousarray(colors, dtype=np.uint8), image, median)
+    origin = np.array([0.0, 0.0, median])
+    if z.size:
+        origin[:2] = points[points.shape[0] // 2, :2]  # the middle pixel row's point: near the data, cheap
+    return DisplayFrame(index, points, np.ascontiguousarray(colors, dtype=np.uint8), image, median, origin)
 
 
 class FrameCache:

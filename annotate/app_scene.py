@@ -69,15 +69,13 @@ class SceneView:
         self.mesh = None
         self.extents = None
         self.show_faces = True
+        self._box_key = None
         self.place_face_handles(np.full(3, 0.1))
 
     # --- frame ---------------------------------------------------------------------------
     def show_frame(self, frame: DisplayFrame, image: np.ndarray | None = None) -> None:
-        """Replace the point cloud (float32, relative to the median point) and the frustum's image."""
-        if len(frame.points):
-            origin = np.median(frame.points, axis=0).astype(np.float64)
-        else:
-            origin = np.zeros(3)
+        """Replace the point cloud (float32, relative to a point of the cloud) and the frustum's image."""
+        origin = frame.origin
         relative = (frame.points - origin.astype(np.float32)).astype(np.float32)
         self.cloud = self.scene.add_point_cloud(
             "/cloud", relative, frame.colors, point_size=self.point_size, precision="float32", point_shape="square", point_shading="flat", position=origin
@@ -86,8 +84,11 @@ class SceneView:
 
     def show_image(self, image: np.ndarray, median_depth: float = 1.0) -> None:
         """The camera frustum at the sensor with the (annotated) colour image on its far plane."""
-        small = np.asarray(image)[::2, ::2]
+        small = np.asarray(image)
         cam = self.camera
+        if self.frustum is not None:
+            self.frustum.image = small  # only the image changes: no new scene node
+            return
         self.frustum = self.scene.add_camera_frustum(
             "/frustum", fov=sensor_fov(cam), aspect=cam.width / cam.height, scale=min(0.15, 0.3 * median_depth),
             image=small, format="jpeg", jpeg_quality=80, color=(230, 180, 40), thickness=2.0, thickness_units="screen",
@@ -101,6 +102,14 @@ class SceneView:
         self.gizmo.wxyz = wxyz(orientation)
 
     def show_box(self, extents, own_pose: bool) -> None:
+        """Redraw the box geometry when its extents or its own/borrowed look changed (switching frames rarely does)."""
+        key = (tuple(np.round(np.asarray(extents, dtype=np.float64), 9)), bool(own_pose))
+        if key == self._box_key:
+            return
+        self._draw_box(extents, own_pose)
+        self._box_key = key
+
+    def _draw_box(self, extents, own_pose: bool) -> None:
         """Box geometry below the gizmo: axis-coloured edges, tinted up (+y, green) and front (+z, blue) faces.
 
         A frame without its own pose shows the borrowed box dashed-looking (thin, grey edges).
@@ -116,8 +125,9 @@ class SceneView:
         for name, axis, sign, color in (("up", 1, 1, (70, 220, 90)), ("front", 2, 1, (70, 140, 255))):
             vertices, faces = box_quad(extents, axis, sign)
             self.scene.add_mesh_simple(f"{BOX}/{name}", vertices, faces, color=color, opacity=0.35, side="double", cast_shadow=False, receive_shadow=False)
+        if self.extents is None or not np.array_equal(self.extents, extents):
+            self.place_face_handles(extents)
         self.extents = extents
-        self.place_face_handles(extents)
 
     def place_face_handles(self, extents) -> None:
         """One single-axis gizmo per face (viser's gizmo cannot scale): dragging it moves that face."""

@@ -18,6 +18,9 @@ from .app_state import is_flagged
 if TYPE_CHECKING:
     from .app import App
 
+#: Posed frames (twice the nearest used) that the interactive refine builds its model from.
+REFINE_MODEL_FRAMES = 6
+
 
 def tracking_engine():
     """The tracking module, or None when it is not installed."""
@@ -84,6 +87,12 @@ class TrackingPanel:
         return self.worker is not None and self.worker.is_alive()
 
     # --- actions -------------------------------------------------------------------------
+    @staticmethod
+    def refine_config(engine):
+        """Interactive refine: a model from the few nearest posed frames only (each is read from disk per call)."""
+        config_class = getattr(engine, "TrackingConfig", None)
+        return None if config_class is None else config_class(max_global_frames=REFINE_MODEL_FRAMES)
+
     def refine_current(self) -> None:
         """Refine the current frame's box (starting from the box shown) and store it as ``refined``."""
         app = self.app
@@ -100,7 +109,7 @@ class TrackingPanel:
             document.frames[frame_id] = FramePose(pose.position.copy(), pose.orientation.copy(), "manual")
         start = time.perf_counter()
         try:
-            result = engine.refine_frame(app.sequence, document, frame_id)
+            result = engine.refine_frame(app.sequence, document, frame_id, self.refine_config(engine))
         except Exception as error:  # a failed registration must not take the page down
             app.say(f"Refine failed: {error}")
             return

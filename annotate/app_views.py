@@ -49,12 +49,15 @@ def project_box(camera: Camera, position, orientation, extents) -> tuple[np.ndar
     return camera.project(corners)
 
 
-def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, width: int = 2) -> np.ndarray:
-    """A copy of ``image`` (H, W, 3) uint8 with the box's edges drawn (coloured by axis) and up/front faces tinted.
+def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, width: int = 2, scale: float = 1.0) -> np.ndarray:
+    """A copy of ``image`` with the box's edges drawn (coloured by axis) and up/front faces tinted.
 
-    Edges with a corner behind the camera are left out rather than drawn wrapped around.
+    ``image`` (h, w, 3) uint8 is the camera's image resized by ``scale`` (e.g. 0.5 for a half-size
+    preview). Edges with a corner behind the camera are left out rather than drawn wrapped around.
     """
     uv, z = project_box(camera, position, orientation, extents)
+    # pixel centres stay at integer coordinates when resizing by ``scale``
+    uv = (uv + 0.5) * scale - 0.5
     base = Image.fromarray(np.asarray(image, dtype=np.uint8)).convert("RGBA")
     overlay = Image.new("RGBA", base.size, (0, 0, 0, 0))
     draw = ImageDraw.Draw(overlay)
