@@ -50,7 +50,7 @@ def test_remapping_by_hand(redwood75_dir):
     np.testing.assert_allclose(sample.position, ann["position"])
 
 
-@pytest.mark.slow  # imports torch and cpas_toolbox (about 6 s idle, 17 s on a loaded machine)
+@pytest.mark.slow  # imports torch and cpas_toolbox: 17 s measured on the loaded 2-core machine
 def test_agrees_with_cpas_toolbox(redwood75_dir, tmp_path):
     redwood = pytest.importorskip("cpas_toolbox.datasets.redwood_dataset")
     root = tmp_path / "redwood"

@@ -238,6 +238,7 @@ class StandInCpas:
         }
 
 
+@pytest.mark.slow  # imports torch: 13 s measured on the loaded 2-core machine
 def test_cpas_adapter_runs_cpas_class_unchanged():
     torch = pytest.importorskip("torch")
     assert is_cpas_method(StandInCpas) and not is_cpas_method(PlainMethod)
