@@ -13,8 +13,8 @@ gives its volume,
 where only faces with n_x != 0 contribute: A's 6 faces and B's two x faces (B's y and z faces have
 n_x = 0 exactly).  Each face polygon is the intersection of 10 half-planes in its plane; a convex
 polygon given by half-planes has its vertices among the 45 pairwise intersections of the 10 boundary
-lines: we keep the feasible ones, sort them by angle about their mean and take the shoelace area and
-first moments.  All of this is fixed-size arrays, vectorised across pairs (8 faces x 45 candidates x
+lines (40 once the parallel pairs are left out): we keep the feasible ones, sort them by angle about their mean and take the shoelace area and
+first moments.  All of this is fixed-size arrays, vectorised across pairs (8 faces x 40 candidates x
 10 lines per pair; faces whose own quad misses the other box are skipped).
 
 Degenerate configurations are exact by construction, not by luck:
@@ -49,7 +49,11 @@ _PARALLEL = 1e-3
 #: For face F (0-5: A's planes +x,-x,+y,-y,+z,-z; 6-11: B's), the 10 planes that bound it: all but F
 #: and its parallel opposite.
 _OTHER = np.array([[k for k in range(12) if k // 2 != f // 2] for f in range(12)])
-_PAIR_K, _PAIR_L = np.triu_indices(10, k=1)  # the 45 line pairs of a face
+# The line pairs of a face that can meet: in _OTHER's order, positions (0,1), (2,3), ... (8,9) are the
+# two parallel planes of one box axis, for A's faces and B's alike; the other 40 pairs remain.
+_PAIR_K, _PAIR_L = np.triu_indices(10, k=1)
+_PAIR_K, _PAIR_L = _PAIR_K[_PAIR_K // 2 != _PAIR_L // 2], _PAIR_L[_PAIR_K // 2 != _PAIR_L // 2]
+_CANDIDATES = len(_PAIR_K)  # 40
 _SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
 # Positions in _OTHER[f] of a face's own box's 4 neighbouring planes (first 4 for A's faces, last 4 for
 # B's) and of the other box's 6 planes; the own quad's corners are the pairs of non-parallel neighbours.
@@ -128,7 +132,7 @@ def _intersection_volume(half_a: np.ndarray, half_b: np.ndarray, R: np.ndarray, 
     a_s, a_r, b = a_s.reshape(F, 10), a_r.reshape(F, 10), b.reshape(F, 10)
     moments = np.zeros((3, F))  # area, integral of s, integral of r, in the (s, r) plane
     rows = np.flatnonzero(active)
-    for start in range(0, len(rows), _CHUNK):  # chunks keep the (faces, 10, 45) arrays in cache
+    for start in range(0, len(rows), _CHUNK):  # chunks keep the (faces, 10, 40) arrays in cache
         sel = rows[start:start + _CHUNK]
         moments[:, sel] = _polygon_moments(a_s[sel], a_r[sel], b[sel], tol_f[sel])
     area, ms, mr = (m.reshape(M, _FACES) for m in moments)
@@ -168,9 +172,9 @@ def _polygon_moments(a_s, a_r, b, tol):
     one per row (rows are (10,) lines); shape (3, rows)."""
     n = len(a_s)
     ps, pr, valid = _line_intersections(a_s, a_r, b, _PAIR_K, _PAIR_L)
-    # Residuals of all 45 candidates against all 10 lines as one batched matrix product; the (10, 45)
+    # Residuals of all candidates against all 10 lines as one batched matrix product; the (10, 40)
     # layout makes the max over lines a reduction over a leading axis, several times faster in NumPy.
-    points = np.stack([ps, pr, -np.ones_like(ps)], axis=1)  # (n, 3, 45)
+    points = np.stack([ps, pr, -np.ones_like(ps)], axis=1)  # (n, 3, 40)
     lines = np.stack([a_s, a_r, b], axis=2)  # (n, 10, 3)
     worst = np.max(np.matmul(lines, points), axis=1)
     feasible = valid & (worst <= tol[:, None])
@@ -185,9 +189,9 @@ def _polygon_moments(a_s, a_r, b, tol):
     pseudo = np.where(qs >= 0, pseudo, 2.0 - pseudo)
     order = np.argsort(np.where(feasible, pseudo, np.inf), axis=1)
     # Slots past the last feasible vertex repeat it, which adds nothing to the shoelace sums.
-    slot = np.minimum(np.arange(45)[None, :], np.maximum(count - 1, 0)[:, None])
-    idx = (np.take_along_axis(order, slot, axis=1) + 45 * np.arange(n)[:, None]).ravel()
-    qs, qr = qs.ravel()[idx].reshape(n, 45), qr.ravel()[idx].reshape(n, 45)
+    slot = np.minimum(np.arange(_CANDIDATES)[None, :], np.maximum(count - 1, 0)[:, None])
+    idx = (np.take_along_axis(order, slot, axis=1) + _CANDIDATES * np.arange(n)[:, None]).ravel()
+    qs, qr = qs.ravel()[idx].reshape(n, _CANDIDATES), qr.ravel()[idx].reshape(n, _CANDIDATES)
     qs2, qr2 = np.roll(qs, -1, axis=1), np.roll(qr, -1, axis=1)
     cross = qs * qr2 - qs2 * qr
     area = 0.5 * cross.sum(axis=1)

@@ -88,7 +88,8 @@ class ShapeIndex:
         """(gt -> prediction, prediction -> gt) nearest-neighbour distances; both sets in this object's frame."""
         pred = points_array(points_pred, "points_pred")
         d_pred_to_gt = nearest_distances(pred, self.tree, upper_bound)
-        d_gt_to_pred = nearest_distances(self.points, cKDTree(pred), upper_bound)
+        # a midpoint-split tree builds ~3x faster; nearest distances do not depend on the tree shape
+        d_gt_to_pred = nearest_distances(self.points, cKDTree(pred, balanced_tree=False), upper_bound)
         return d_gt_to_pred, d_pred_to_gt
 
     def fscore(self, points_pred, threshold: float = 0.01) -> FScore:
