@@ -304,3 +304,51 @@ def test_methods_run_here_on_frames(redwood75_dir, tmp_path):
     for r in errors:
         sample = next(s for s in data if s.frame == r["frame"] and s.sequence == r["sequence"])
         assert 0 < float(r["translation"]) < np.linalg.norm(sample.extents) / 2
+
+
+def test_correctness_agrees_with_cpas_toolbox(redwood75_dir, tmp_path):
+    """Per sample, our correctness at the paper's thresholds equals cpas_toolbox's correct_thresh on the
+    same predictions and the same posed surface points, for mugs (no symmetry: where cpas_toolbox's
+    rotation error is right). Noisy oracles put errors on both sides of every threshold."""
+    cpas_metrics = pytest.importorskip("cpas_toolbox.metrics")
+    from evaluate.datasets.redwood75 import Redwood75Dataset
+    from evaluate.metrics import ShapeIndex, sample_surface
+    from evaluate.methods.oracle import OracleMethod
+
+    raw = json.loads((redwood75_dir / "annotations.json").read_text())
+    small = tmp_path / "mugs"
+    small.mkdir()
+    (small / "annotations.json").write_text(json.dumps({k: raw[k] for k in ("00015", "00340")}))
+    for k in ("00015", "00340"):
+        (small / f"{k}.obj").symlink_to(redwood75_dir / "meshes" / f"{k}.obj")
+    n, seed = 1500, 4
+    noises = {f"n{s}": {"position_noise": 0.006, "rotation_noise": 4.0, "extents_noise": 0.05, "seed": s} for s in range(3)}
+    config = tmp_path / "config.yaml"
+    config.write_text(yaml.safe_dump({"dataset": "mugs", "out": "out", "surface_samples": n, "seed": seed, "methods": [{"name": k, "spec": "oracle", "config": v} for k, v in noises.items()]}))
+    assert _run(["--config", str(config)]) == 0
+    ours = {(r["method"], r["sequence"], r["frame"]): r for r in csv.DictReader((tmp_path / "out" / "errors.csv").open())}
+    thresholds = [(0.02, 10, None), (0.01, 5, None), (0.02, 10, 0.6), (0.01, 5, 0.8)]
+    data = Redwood75Dataset(small)
+    agreements, outcomes = 0, set()
+    for name, options in noises.items():
+        oracle = OracleMethod(options, data, name)
+        for sample in data:
+            p = oracle.predict(sample)
+            gt_points = ShapeIndex.from_mesh(data.mesh(sample), n, seed).points @ quat_matrix(sample.orientation).T + sample.position
+            pred_points = sample_surface(p.reconstruction, n, seed) @ quat_matrix(p.orientation).T + p.position
+            row = ours[(name, sample.sequence, sample.frame)]
+            for position, degrees, f in thresholds:
+                theirs = cpas_metrics.correct_thresh(
+                    sample.position, p.position, Rotation.from_quat(sample.orientation), Rotation.from_quat(p.orientation),
+                    points_gt=gt_points, points_prediction=pred_points,
+                    position_threshold=position, degree_threshold=degrees, fscore_threshold=f,
+                )
+                mine = float(row["translation"]) <= position and float(row["rotation"]) <= degrees and (f is None or float(row["fscore"]) >= f)
+                assert mine == bool(theirs), (name, sample.label, position, degrees, f, row)
+                agreements += 1
+                outcomes.add(mine)
+    assert agreements == 3 * 10 * 4 and outcomes == {True, False}
+
+
+def quat_matrix(q) -> np.ndarray:
+    return Rotation.from_quat(q).as_matrix()
