@@ -61,6 +61,7 @@ def test_predictions_file_good_and_malformed(tmp_path):
             _line("s1", "0000011", reconstruction="broken.obj"),
             _line("s1", "0000012", extents=[0.1, -0.1, 0.1]),
             _line("s1", "0000013", position="here"),
+            _line("s1", 14, position=[1, 1, 1]),  # a frame number matches the zero-padded id
             "{not json",
             json.dumps({"position": [0, 0, 1]}),
             _line("elsewhere", "0000001"),
@@ -86,8 +87,9 @@ def test_predictions_file_good_and_malformed(tmp_path):
         with pytest.raises(PredictionFailure) as info:
             predictions.predict(_sample(frame=frame))
         assert reason in str(info.value), (frame, str(info.value))
-    assert [number for number, _ in predictions.problems] == [11, 12]
-    assert predictions.unmatched([_sample(frame=f"00000{i:02d}") for i in range(5, 14)]) == [("elsewhere", "0000001", None)]
+    np.testing.assert_array_equal(predictions.predict(_sample(frame="0000014")).position, [1, 1, 1])
+    assert [number for number, _ in predictions.problems] == [12, 13]
+    assert predictions.unmatched([_sample(frame=f"00000{i:02d}") for i in range(5, 15)]) == [("elsewhere", "1", None)]
 
 
 def test_predictions_file_instances_and_missing_file(tmp_path):

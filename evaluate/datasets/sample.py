@@ -34,7 +34,7 @@ class Sample:
     depth_path: Path | None = None
     mesh_path: Path | None = None  # None: no mesh; shape metrics are skipped for this sample
     instance: str | None = None  # instance id where a frame holds several objects (NOCS)
-    mask_path: Path | None = None  # instance-id image, where the dataset has one (NOCS)
+    mask_path: Path | None = None  # the dataset's own mask image (NOCS instance ids; masks reconstruct-sequence wrote)
 
     def __post_init__(self) -> None:
         self.position = np.asarray(self.position, dtype=np.float64).reshape(3)

@@ -1,6 +1,7 @@
 """The predictions-file method: a JSON Lines file, one object per sample, for methods not run here.
 
-Each line: ``{"sequence", "frame" (frame id; a colour file name or stem also matches),
+Each line: ``{"sequence", "frame" (frame id; a colour file name or stem, or the frame number
+as an integer, also matches),
 "instance" (only for datasets with several objects per frame), "position" [3] (m, camera
 frame), "orientation" [4] (x, y, z, w, object -> camera), "extents" [3] (m, full side lengths,
 ShapeNet axes), "reconstruction" (optional: a mesh or point file, object frame, metres; relative
@@ -34,7 +35,12 @@ Key = tuple[str, str, "str | None"]
 
 
 def _key(sequence: Any, frame: Any, instance: Any) -> Key:
-    return (str(sequence), frame_id(str(frame)), None if instance is None else str(instance))
+    """Matching key: a frame given as a number (5), a zero-padded id ("0000005") or a Redwood file name
+    ("0000005-000000134064.jpg") all name the same frame."""
+    frame = frame_id(str(frame))
+    if frame.isdigit():
+        frame = str(int(frame))
+    return (str(sequence), frame, None if instance is None else str(instance))
 
 
 class PredictionsFile(SampleMethod):
@@ -72,11 +78,11 @@ class PredictionsFile(SampleMethod):
 
     def unmatched(self, samples: list[Sample]) -> list[Key]:
         """Keys of lines that name no sample of the dataset."""
-        known = {s.key for s in samples}
+        known = {_key(*s.key) for s in samples}
         return sorted((k for k in self.entries if k not in known), key=str)
 
     def predict(self, sample: Sample, inputs: FrameInputs | None = None) -> Prediction:
-        key = sample.key
+        key = _key(*sample.key)
         if key in self.duplicates:
             raise PredictionFailure(f"several predictions (lines {self.duplicates[key]} of {self.path.name})")
         if key not in self.entries:
