@@ -101,6 +101,29 @@ def test_depth_matches_independent_render_of_the_true_mesh(mug):
     assert min(ious) > 0.95, ious
 
 
+def test_dropout_grows_at_grazing_angles(mug):
+    seq = open_sequence(mug)
+    truth = load_truth(mug)
+    camera = seq.camera
+    grazing, head_on = [], []
+    for frame_id in truth.ids:
+        T = truth.poses[frame_id]
+        vertices = np.asarray(truth.mesh.vertices) @ T[:3, :3].T + T[:3, 3]
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(np.asarray(truth.mesh.faces, dtype=np.uint32)))
+        d = camera.pixel_rays().reshape(-1, 3)
+        answer = scene.cast_rays(o3d.core.Tensor(np.concatenate([np.zeros_like(d), d], 1).astype(np.float32)))
+        normals = answer["primitive_normals"].numpy()
+        cos = np.abs(np.einsum("ij,ij->i", normals, d / np.linalg.norm(d, axis=1, keepdims=True))).reshape(camera.shape)
+        mask = truth.mask(frame_id)
+        missing = seq.depth_raw(frame_id) == 0
+        grazing.append(missing[mask & (cos < 0.08)])
+        head_on.append(missing[mask & (cos > 0.5)])
+    grazing, head_on = np.concatenate(grazing), np.concatenate(head_on)
+    assert grazing.size > 50 and grazing.mean() > 0.7  # nearly always lost beyond ~85 degrees
+    assert head_on.mean() < 0.06  # only speckle, blobs and edges where the surface faces the camera
+
+
 def test_wall_noise_matches_the_model(mug):
     seq = open_sequence(mug)
     truth = load_truth(mug)
@@ -164,6 +187,11 @@ def test_hand_occludes_the_object_and_regrasps(mug):
     # the hand covers part of the object in most held frames (from behind, in some views, it hides nothing)
     assert np.mean(np.array(fractions) > 0.01) >= 0.5, fractions
     assert max(fractions) < 0.9
+    # what covers the object while it is held is mostly the hand touching it: near the object's surface
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(truth.mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(truth.mesh.faces, np.uint32)))
+    occluders = np.concatenate([np.concatenate(v) for v in occluder_centres.values()])
+    assert np.median(scene.compute_distance(o3d.core.Tensor(occluders.astype(np.float32))).numpy()) < 0.03
     centres = {k: np.concatenate(v).mean(axis=0) for k, v in occluder_centres.items()}
     assert len(centres) >= 2
     a, b = list(centres.values())[:2]
