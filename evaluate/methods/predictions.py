@@ -59,6 +59,7 @@ class PredictionsFile(SampleMethod):
         self.entries: dict[Key, tuple[int, dict]] = {}
         self.duplicates: dict[Key, list[int]] = {}
         self.problems: list[tuple[int, str]] = []  # (line number, reason) of lines not attributable to a sample
+        self._loaded: dict[Path, object] = {}  # reconstruction file -> mesh or points
         for number, line in enumerate(lines, 1):
             if not line.strip():
                 continue
@@ -114,7 +115,10 @@ class PredictionsFile(SampleMethod):
         if not path.is_file():
             raise PredictionFailure(f"{at}: reconstruction file {value} not found")
         try:
-            return load_reconstruction(path)
+            # several samples (frames of one sequence) often share one reconstruction file: read it once
+            if path not in self._loaded:
+                self._loaded[path] = load_reconstruction(path)
+            return self._loaded[path]
         except (ValueError, OSError) as error:
             raise PredictionFailure(f"{at}: unreadable reconstruction {value} ({error.__class__.__name__}: {' '.join(str(error).split())})"[:300]) from error
 
