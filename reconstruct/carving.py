@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from sequences.camera import Camera
 
@@ -106,6 +107,8 @@ def carve(
     camera: Camera,
     k: int,
     tol_sigmas: float = DEFAULT_TOL_SIGMAS,
+    voxel_margin: float = 1.0,
+    silhouette_px: int = 0,
     progress: Callable[[int], None] | None = None,
 ) -> CarveResult:
     """Count free-space votes per voxel.
@@ -118,14 +121,19 @@ def carve(
     count = np.zeros(grid.size, dtype=np.uint16)
     active = np.arange(grid.size)
     active_points = centres
-    half_diagonal = np.float32(np.sqrt(3.0) / 2 * grid.voxel_size)
+    half_diagonal = np.float32(voxel_margin * np.sqrt(3.0) / 2 * grid.voxel_size)
     K = camera.K
     width, height = camera.width, camera.height
     ids: list[str] = []
     projections = 0
     for done, (frame_id, depth, pose) in enumerate(frames, start=1):
         ids.append(frame_id)
-        depth_flat = np.ascontiguousarray(depth, dtype=np.float32).reshape(-1)
+        depth = np.ascontiguousarray(depth, dtype=np.float32)
+        if silhouette_px > 0:
+            # a voxel is free only if every pixel within silhouette_px sees past it: silhouettes
+            # grow by that much, so a pose off by a pixel or two can not cut into the object
+            depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
+        depth_flat = depth.reshape(-1)
         # [u z, v z, z] = K (R p + t): one (N, 3) x (3, 3) product per frame
         M = K @ np.asarray(pose, dtype=np.float64)[:3, :]
         q = active_points @ M[:, :3].T.astype(np.float32)

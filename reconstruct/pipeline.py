@@ -84,6 +84,8 @@ def reconstruct_sequence(
     margin: float | None = None,
     k: int | None = None,
     tol_sigmas: float = carving.DEFAULT_TOL_SIGMAS,
+    voxel_margin: float = 1.0,
+    silhouette_px: int = 0,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
 ) -> Reconstruction:
@@ -105,7 +107,7 @@ def reconstruct_sequence(
     if grid.size > 60_000_000:
         raise InputError(source, f"voxel grid of {grid.shape} is too large: raise --voxel-size or check the extents")
     k_votes = carving.choose_k(len(ids)) if k is None else int(k)
-    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, progress=lambda done: say("carve", done, len(ids)))
+    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)))
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()

@@ -48,8 +48,9 @@ def y_cylinder(radius: float, height: float) -> trimesh.Trimesh:
     return mesh
 
 
-def orbit_poses(n: int, distance: float = 0.6, seed: int = 0, upper_only: bool = False) -> list[np.ndarray]:
-    """Object-to-camera poses seeing the object from directions spread over the sphere (or the upper half)."""
+def orbit_poses(n: int, distance: float = 0.6, seed: int = 0, upper_only: bool = False, arc_deg: float = 360.0) -> list[np.ndarray]:
+    """Object-to-camera poses seeing the object from directions spread over the sphere (or the upper half),
+    at azimuths within ``arc_deg`` of the object's +x axis."""
     rng = np.random.default_rng(seed)
     golden = np.pi * (3 - np.sqrt(5))
     i = np.arange(n) + 0.5
@@ -57,7 +58,7 @@ def orbit_poses(n: int, distance: float = 0.6, seed: int = 0, upper_only: bool =
     if upper_only:
         y = 0.15 + 0.8 * y
     r = np.sqrt(1 - y**2)
-    phi = golden * np.arange(n)
+    phi = np.mod(golden * np.arange(n), 2 * np.pi) * (arc_deg / 360.0)
     directions = np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)  # object centre -> camera
     poses = []
     for d in directions:
@@ -97,6 +98,7 @@ def write_scene(
     category: str = "other",
     symmetry: str = "none",
     upper_only: bool = False,
+    arc_deg: float = 360.0,
     seed: int = 0,
 ) -> Scene:
     """Render ``mesh`` (object frame) into ``root`` (rgb/, depth/, camera.yaml, annotation.yaml with the true poses)."""
@@ -108,7 +110,7 @@ def write_scene(
     poses = {}
     frames = {}
     hand_mesh = trimesh.creation.icosphere(2, radius=0.02)
-    for i, T in enumerate(orbit_poses(n_frames, seed=seed, upper_only=upper_only)):
+    for i, T in enumerate(orbit_poses(n_frames, seed=seed, upper_only=upper_only, arc_deg=arc_deg)):
         frame_id = f"{i:07d}"
         posed = mesh.copy()
         posed.apply_transform(T)
