@@ -163,6 +163,14 @@ class BrokenMethod(Method):
         return {}["position"]
 
 
+class NeedsWeights(Method):
+    def __init__(self, config=None):
+        raise FileNotFoundError("weights.pth not found")
+
+    def inference(self, color, depth, mask, category, camera):
+        raise AssertionError("never constructed")
+
+
 class NotAMethod:
     pass
 
@@ -183,6 +191,7 @@ def test_registry(tmp_path):
         ("x=no_such_module_xyz:Thing", "not available"),
         (f"x={__name__}:Missing", "has no Missing"),
         (f"x={__name__}:NotAMethod", "neither"),
+        (f"x={__name__}:NeedsWeights", "could not be constructed .FileNotFoundError: weights.pth not found"),
         ("bad name=box", "must be letters"),
         ("", "non-empty"),
     ]:

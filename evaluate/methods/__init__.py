@@ -99,6 +99,15 @@ def is_cpas_method(cls: type) -> bool:
 
 
 def _from_class(name: str, cls: type, config: dict | None, camera: Camera) -> SampleMethod:
+    try:
+        return _construct(name, cls, config, camera)
+    except InputError:
+        raise
+    except Exception as error:  # a method that cannot start (missing weights, bad config) ends the run in one line
+        raise InputError(None, f"method {name}: {cls.__module__}.{cls.__name__} could not be constructed ({error.__class__.__name__}: {error})"[:400]) from error
+
+
+def _construct(name: str, cls: type, config: dict | None, camera: Camera) -> SampleMethod:
     if issubclass(cls, SampleMethod):
         method = cls(config)
         method.name = name
