@@ -14,9 +14,22 @@ import sys
 
 from sequences.errors import InputError, run_cli
 
+EXAMPLES = """examples:
+  evaluate --dataset ../shared/data/redwood75 --method spd=spd.jsonl --method oracle --out results/
+  evaluate --dataset gt/ --frames sequences/ --method box --method template --out results/
+  evaluate --dataset gt/ --frames sequences/ --method sgpa=cpas_toolbox.cpas_methods.sgpa:SGPA --out results/
+  evaluate --config evaluate.yaml --out results/   (the YAML keys: see evaluate/config.py)
+
+outputs: OUT/results.json, OUT/table.md, OUT/table.csv, OUT/precision_curves.png, OUT/curves.json, OUT/errors.csv"""
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="evaluate", description="Evaluate methods on a REDWOOD75-format dataset.")
+    parser = argparse.ArgumentParser(
+        prog="evaluate",
+        description="Evaluate methods on a REDWOOD75-format dataset (or a NOCS REAL275-format folder).",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--dataset", help="folder with annotations.json and the meshes")
     parser.add_argument("--frames", help="root of the sequence folders (for methods run here)")
     parser.add_argument("--method", action="append", help="built-in name (box, template, oracle), NAME=predictions.jsonl or NAME=module:Class; repeatable; replaces the config's methods")
