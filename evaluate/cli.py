@@ -10,6 +10,7 @@ writes ``OUT/results.json``, ``OUT/table.md``, ``OUT/table.csv``, ``OUT/precisio
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from sequences.errors import InputError, run_cli
@@ -54,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     from evaluate.report import write_outputs
     from evaluate.runner import evaluate_dataset
 
+    _check_out(config.out)  # before a long run, not after it
     evaluation = evaluate_dataset(config, progress=not args.quiet)
     paths = write_outputs(config.out, evaluation.dataset.name, evaluation.results, evaluation.dataset.categories, evaluation.notes)
     for note in evaluation.notes:
@@ -63,6 +65,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{result.name}: {headline} ({len(result.failed)} of {result.samples} failed)")
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
     return 0
+
+
+def _check_out(out) -> None:
+    """Fail before a long run, not after it, when OUT cannot be written (nothing is created here)."""
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "output path exists and is not a folder")
+    existing = out
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise InputError(out, f"cannot write the output folder ({existing} is not writable)")
 
 
 def entry() -> None:

@@ -230,6 +230,8 @@ def test_bad_command_lines(capsys, tmp_path, redwood75_dir):
     assert "predictions file not found" in _error_line(capsys, ["--dataset", str(redwood75_dir), "--method", f"x={tmp_path / 'none.jsonl'}", "--out", out])
     assert "two methods are named 'oracle'" in _error_line(capsys, ["--dataset", str(redwood75_dir), "--method", "oracle", "--method", "oracle", "--out", out])
     assert not (tmp_path / "o").exists()
+    (tmp_path / "file").write_text("not a folder")
+    assert "not a folder" in _error_line(capsys, ["--dataset", str(redwood75_dir), "--method", "oracle", "--out", str(tmp_path / "file")])
 
 
 def test_console_entry_exit_code(tmp_path):
