@@ -27,7 +27,7 @@ from evaluate.metrics.box_iou import box_iou_batch, symmetric_box_iou_batch
 from evaluate.metrics.pose_errors import rotation_error
 from evaluate.metrics.precision import DEFAULT_FSCORE_DISTANCE, SampleErrors
 from evaluate.metrics.sampling import ShapeIndex
-from evaluate.metrics.shape_metrics import chamfer_from_distances, fscore_from_distances
+from evaluate.metrics.shape_metrics import chamfer_from_distances, fscore_from_distances, fscore_from_hits
 
 #: A predicted quaternion whose norm differs from 1 by more than this is malformed.
 QUATERNION_TOLERANCE = 1e-3
@@ -188,9 +188,10 @@ def compute_sample_errors(
         # predicted object frame -> camera -> ground-truth object frame
         cam = pts[i] @ Rp[i].T + pp[i]
         in_gt = (cam - gp[i]) @ Rg[i]
-        bound = np.inf if compute_chamfer else fscore_threshold * (1 + 1e-9)
-        d_gt_to_pred, d_pred_to_gt = shapes[i].distances(in_gt, upper_bound=bound)
-        fscore[i] = fscore_from_distances(d_gt_to_pred, d_pred_to_gt, fscore_threshold).fscore
-        if compute_chamfer:
+        if compute_chamfer:  # full distances needed
+            d_gt_to_pred, d_pred_to_gt = shapes[i].distances(in_gt)
+            fscore[i] = fscore_from_distances(d_gt_to_pred, d_pred_to_gt, fscore_threshold).fscore
             chamfer[i] = chamfer_from_distances(d_gt_to_pred, d_pred_to_gt)
+        else:
+            fscore[i] = fscore_from_hits(*shapes[i].hits(in_gt, fscore_threshold)).fscore
     return SampleErrors(position_error, rot_error, iou, fscore, failed, chamfer, failure)

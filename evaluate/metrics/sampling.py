@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from evaluate.metrics.shape_metrics import (
     FScore,
     chamfer_from_distances,
-    fscore_from_distances,
+    fscore_from_hits,
     nearest_distances,
     points_array,
 )
@@ -92,12 +92,43 @@ class ShapeIndex:
         d_gt_to_pred = nearest_distances(self.points, cKDTree(pred, balanced_tree=False), upper_bound)
         return d_gt_to_pred, d_pred_to_gt
 
+    def hits(self, points_pred, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+        """(gt points with a predicted point closer than ``threshold``, predicted points with a gt point
+        closer than ``threshold``) as boolean arrays: exactly ``distances(...) < threshold``, faster.
+
+        Points that share a cell of a grid with cells of diagonal just under ``threshold`` with a point of
+        the other set are closer than ``threshold`` for sure; only the others need a KD-tree query.
+        """
+        if not np.isfinite(threshold) or threshold <= 0:
+            raise ValueError(f"threshold must be a positive distance in metres, got {threshold}")
+        pred = points_array(points_pred, "points_pred")
+        hit_gt, hit_pred = _shared_cells(self.points, pred, threshold / np.sqrt(3) * (1 - 1e-9))
+        bound = threshold * (1 + 1e-9)
+        rest = np.flatnonzero(~hit_pred)
+        if len(rest):
+            hit_pred[rest] = nearest_distances(pred[rest], self.tree, bound) < threshold
+        rest = np.flatnonzero(~hit_gt)
+        if len(rest):
+            hit_gt[rest] = nearest_distances(self.points[rest], cKDTree(pred, balanced_tree=False), bound) < threshold
+        return hit_gt, hit_pred
+
     def fscore(self, points_pred, threshold: float = 0.01) -> FScore:
         """F-score of predicted points (in this object's frame) at ``threshold`` m."""
-        if not np.isfinite(threshold) or threshold <= 0:
-            raise ValueError(f"fscore: threshold must be a positive distance in metres, got {threshold}")
-        return fscore_from_distances(*self.distances(points_pred, threshold * (1 + 1e-9)), threshold)
+        return fscore_from_hits(*self.hits(points_pred, threshold))
 
     def chamfer_distance(self, points_pred, squared: bool = False) -> float:
         """Chamfer distance (m, or m^2 if ``squared``) of predicted points in this object's frame."""
         return chamfer_from_distances(*self.distances(points_pred), squared)
+
+
+def _shared_cells(a: np.ndarray, b: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each point of ``a`` shares a grid cell (side ``cell``) with a point of ``b``, and vice versa."""
+    ka, kb = np.floor(a / cell), np.floor(b / cell)
+    lo = np.minimum(ka.min(axis=0), kb.min(axis=0))
+    dims = np.maximum(ka.max(axis=0), kb.max(axis=0)) - lo + 1
+    if np.prod(dims) >= 2.0**62:  # absurdly spread points: no shortcut
+        return np.zeros(len(a), bool), np.zeros(len(b), bool)
+    dims = dims.astype(np.int64)
+    key_a = np.ravel_multi_index((ka - lo).astype(np.int64).T, dims)
+    key_b = np.ravel_multi_index((kb - lo).astype(np.int64).T, dims)
+    return np.isin(key_a, key_b), np.isin(key_b, key_a)

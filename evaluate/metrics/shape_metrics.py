@@ -55,8 +55,14 @@ def chamfer_from_distances(d_gt_to_pred: np.ndarray, d_pred_to_gt: np.ndarray, s
 
 def fscore_from_distances(d_gt_to_pred: np.ndarray, d_pred_to_gt: np.ndarray, threshold: float) -> FScore:
     """F-score from the two directed nearest-neighbour distance arrays (strict ``< threshold``)."""
-    recall = np.sum(d_gt_to_pred < threshold) / d_gt_to_pred.shape[0]
-    precision = np.sum(d_pred_to_gt < threshold) / d_pred_to_gt.shape[0]
+    return fscore_from_hits(d_gt_to_pred < threshold, d_pred_to_gt < threshold)
+
+
+def fscore_from_hits(gt_hit: np.ndarray, pred_hit: np.ndarray) -> FScore:
+    """F-score from booleans: gt points with a predicted point within the threshold, and vice versa."""
+    # Same arithmetic as cpas_toolbox (count / n, then 2 / (1/r + 1/p)), so results agree bit for bit.
+    recall = np.sum(gt_hit) / gt_hit.shape[0]
+    precision = np.sum(pred_hit) / pred_hit.shape[0]
     if recall < 1e-7 or precision < 1e-7:
         return FScore(0.0, float(precision), float(recall))
     return FScore(float(2 / (1 / recall + 1 / precision)), float(precision), float(recall))
