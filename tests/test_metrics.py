@@ -372,3 +372,24 @@ def test_degenerate_configurations_in_random_frames_are_exact():
     expected = np.where((va > 0) & (vb > 0), inter / np.where(union > 0, union, 1), 0.0)
     assert np.sum(expected > 0) > 500 and np.sum((expected == 0) & np.all(hi - lo >= 0, axis=1)) > 500  # overlaps, contacts
     np.testing.assert_allclose(box_iou_batch(ea, Ta, eb, Tb), expected, atol=1e-13, rtol=0)
+
+
+def test_shape_index_hits_shortcut_is_exactly_the_distance_test():
+    # surface samples (where the grid-cell shortcut decides most points) and points placed exactly on
+    # cell boundaries and at distances just below and above the threshold
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    index = ShapeIndex.from_mesh(mesh, n=3000, seed=0)
+    rng = np.random.default_rng(1)
+    threshold = 0.01
+    cell = threshold / np.sqrt(3) * (1 - 1e-9)
+    near = index.points[:200] + rng.normal(size=(200, 3)) * 0.003
+    on_grid = np.round(index.points[200:400] / cell) * cell
+    direction = rng.normal(size=(100, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    shell = index.points[:100] * 1.5 + direction * 1e-3  # far from the sphere
+    for pred in (sample_surface(mesh, 2500, seed=2) * 1.03, near, on_grid, shell):
+        d_gt, d_pred = index.distances(pred)
+        hit_gt, hit_pred = index.hits(pred, threshold)
+        np.testing.assert_array_equal(hit_gt, d_gt < threshold)
+        np.testing.assert_array_equal(hit_pred, d_pred < threshold)
+        assert index.fscore(pred, threshold) == fscore(index.points, pred, threshold)
