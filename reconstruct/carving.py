@@ -117,46 +117,63 @@ def carve(
     camera). Only voxels not carved yet are projected in each frame (a shrinking active set), in
     float32: the projection errors (~1e-7 relative) are far below a pixel.
     """
-    centres = grid.centres(np.float32)
+    points = np.ascontiguousarray(grid.centres(np.float32).T)  # (3, N): rows contiguous for the product
     count = np.zeros(grid.size, dtype=np.uint16)
     active = np.arange(grid.size)
-    active_points = centres
     half_diagonal = np.float32(voxel_margin * np.sqrt(3.0) / 2 * grid.voxel_size)
     K = camera.K
     width, height = camera.width, camera.height
+    # per-frame free-depth threshold image with a one-pixel border of -1: pixels outside the image
+    # and missing depth compare as "never free" without per-voxel bounds tests
+    threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
+    flat_threshold = threshold.reshape(-1)
     ids: list[str] = []
     projections = 0
     for done, (frame_id, depth, pose) in enumerate(frames, start=1):
         ids.append(frame_id)
-        depth = np.ascontiguousarray(depth, dtype=np.float32)
+        depth = np.asarray(depth, dtype=np.float32)
         if silhouette_px > 0:
             # a voxel is free only if every pixel within silhouette_px sees past it: silhouettes
             # grow by that much, so a pose off by a pixel or two can not cut into the object
             depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
-        depth_flat = depth.reshape(-1)
-        # [u z, v z, z] = K (R p + t): one (N, 3) x (3, 3) product per frame
-        M = K @ np.asarray(pose, dtype=np.float64)[:3, :]
-        q = active_points @ M[:, :3].T.astype(np.float32)
-        q += M[:, 3].astype(np.float32)
-        z = q[:, 2]
+        # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
+        inner = depth - (np.float32(tol_sigmas) * depth_sigma(depth) + half_diagonal)
+        inner[depth <= 0] = -1.0
+        threshold[1:-1, 1:-1] = inner
+        # [u z, v z, z] = K (R p + t): one (3, 3) x (3, N) product per frame
+        M = (K @ np.asarray(pose, dtype=np.float64)[:3, :]).astype(np.float32)
+        q = M[:, :3] @ points
+        q += M[:, 3:4]
+        z = q[2]
         projections += z.size
-        in_front = z > 1e-3
-        z_safe = np.where(in_front, z, np.float32(1.0))
-        u = np.rint(q[:, 0] / z_safe).astype(np.int32)
-        v = np.rint(q[:, 1] / z_safe).astype(np.int32)
-        inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        pixel = np.where(inside, v * width + u, 0)
-        d = depth_flat[pixel]
-        tol = np.float32(tol_sigmas) * depth_sigma(d) + half_diagonal
-        free = inside & (d > 0) & (d > z + tol)
-        count[active[free]] += 1
+        behind = None
+        if z.size and z.min() <= 1e-3:  # the camera is inside the grid: those voxels are unknown
+            behind = z <= 1e-3
+            z = np.where(behind, np.float32(1.0), z)
+        inverse = np.reciprocal(z)
+        # padded pixel index floor(u + 0.5) + 1, clipped onto the border for points off the image
+        u = q[0] * inverse
+        u += 1.5
+        np.clip(u, 0.0, width + 1.0, out=u)
+        v = q[1] * inverse
+        v += 1.5
+        np.clip(v, 0.0, height + 1.0, out=v)
+        pixel = v.astype(np.int32)
+        pixel *= width + 2
+        pixel += u.astype(np.int32)
+        free = flat_threshold[pixel] > z
+        if behind is not None:
+            free &= ~behind
+        hits = np.flatnonzero(free)
         if progress is not None:
             progress(done)
-        carved = count[active] > k
-        if carved.any():
-            keep = ~carved
-            active = active[keep]
-            active_points = active_points[keep]
+        if hits.size:
+            newly = active[hits]
+            count[newly] += 1
+            if (count[newly] > k).any():  # drop carved voxels from the active set
+                keep = count[active] <= k
+                active = active[keep]
+                points = np.ascontiguousarray(points[:, keep])
     return CarveResult(grid, count.reshape(grid.shape), k, ids, projections)
 
 
