@@ -90,6 +90,7 @@ def _run(argv) -> int:
     return run_cli(main, [*argv, "--quiet"])
 
 
+@pytest.mark.slow  # about 10 s on the loaded 2-core machine
 def test_end_to_end_numbers(redwood75_dir, predictions, tmp_path):
     out = tmp_path / "out"
     config = tmp_path / "config.yaml"
@@ -257,6 +258,7 @@ class Recorder(Method):
         return Prediction(points.mean(axis=0), [0, 0, 0, 1], [0.1, 0.1, 0.1])
 
 
+@pytest.mark.slow  # about 10 s on the loaded 2-core machine
 def test_methods_run_here_on_frames(redwood75_dir, tmp_path):
     """Frames in both layouts (ours for 00517, cpas_toolbox's for 00595): the method gets the colour
     image, the depth in metres and the instance mask of the visible object (the posed true mesh,
@@ -308,6 +310,7 @@ def test_methods_run_here_on_frames(redwood75_dir, tmp_path):
         assert 0 < float(r["translation"]) < np.linalg.norm(sample.extents) / 2
 
 
+@pytest.mark.slow  # about 10 s on the loaded 2-core machine
 def test_correctness_agrees_with_cpas_toolbox(redwood75_dir, tmp_path):
     """Per sample, our correctness at the paper's thresholds equals cpas_toolbox's correct_thresh on the
     same predictions and the same posed surface points, for mugs (no symmetry: where cpas_toolbox's
