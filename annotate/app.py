@@ -66,7 +66,8 @@ class App:
         self.model = ModelPanel(self)
         with gui.add_folder("View"):
             self.look_button = gui.add_button("Look through camera", hint="hotkey H: view from the sensor with its field of view")
-            self.frustum_box = gui.add_checkbox("Show camera", initial_value=True)
+            # off at first: seen from the sensor, the frustum's image plane would cover the whole view
+            self.frustum_box = gui.add_checkbox("Show camera", initial_value=False, hint="the camera frustum with the colour image")
             self.point_slider = gui.add_slider("Point size (mm)", min=0.5, max=10.0, step=0.5, initial_value=round(point_size * 1000 * 2) / 2)
 
         self.frame_slider.on_update(self._on_slider)

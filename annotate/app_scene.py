@@ -92,7 +92,7 @@ class SceneView:
         self.frustum = self.scene.add_camera_frustum(
             "/frustum", fov=sensor_fov(cam), aspect=cam.width / cam.height, scale=min(0.15, 0.3 * median_depth),
             image=small, format="jpeg", jpeg_quality=80, color=(230, 180, 40), thickness=2.0, thickness_units="screen",
-            visible=self.frustum.visible if self.frustum is not None else True,
+            visible=False,  # shown on request (View > Show camera)
         )
 
     # --- box -----------------------------------------------------------------------------
