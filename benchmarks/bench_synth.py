@@ -13,56 +13,32 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 from PIL import Image
 
 from sequences.camera import Camera
 from sequences.synth import generate as g
-from sequences.synth.motion import GraspPlanner, hand_states, object_trajectory, plan_grasps
 from sequences.synth.png16 import encode_png16
-from sequences.synth.primitives import Part, vertex_normals
-from sequences.synth.render import projected_window, render
-from sequences.synth.scene import OBJECT, background_parts, elbow_at, hand_parts, make_layout, person_parts, upper_arm_part
-from sequences.synth.sensor import color_image, depth_measurement, object_style, scene_albedo
 from sequences.synth.shapes import procedural_mesh
 
 
 def stages(category: str, seed: int, frames: int = 10) -> dict[str, float]:
-    """Mean wall-clock milliseconds per frame of each stage of the frame loop."""
-    camera = Camera()
-    obj = procedural_mesh(category, g._rng(seed, g.SHAPE))
-    trajectory = object_trajectory(frames, g._rng(seed, g.MOTION))
-    layout = make_layout(trajectory.positions.mean(axis=0), g._rng(seed, g.LAYOUT))
-    hands = hand_states(frames, plan_grasps(frames, trajectory, GraspPlanner(obj, g._rng(seed, g.GRASPS)), layout.elbow))
-    style = object_style(g._rng(seed, g.STYLE), float(obj.extents[1]))
-    part = Part(np.asarray(obj.vertices), np.asarray(obj.faces), vertex_normals(np.asarray(obj.vertices), np.asarray(obj.faces)), OBJECT)
-    still_parts = [*background_parts(layout), *person_parts(layout)]
-    still = render(still_parts, camera)
-    static = (still.label, scene_albedo(still, np.eye(4), style, layout))
+    """Mean wall-clock milliseconds per frame of each stage of the frame loop (generate.render_frame + encoding)."""
+    scene = g.build_scene(procedural_mesh(category, g._rng(seed, g.SHAPE)), frames, seed, Camera())
     totals: dict[str, float] = {}
+    last = [time.perf_counter()]
 
-    def lap(name: str, start: float) -> float:
+    def lap(name: str) -> None:
         now = time.perf_counter()
-        totals[name] = totals.get(name, 0.0) + (now - start) * 1000 / frames
-        return now
+        totals[name] = totals.get(name, 0.0) + (now - last[0]) * 1000 / frames
+        last[0] = now
 
     for i in range(frames):
-        t = time.perf_counter()
-        T = trajectory.pose(i)
-        elbow = elbow_at(layout, T[:3, 3])
-        moving = [part.transformed(T), hand_parts(hands[i], T, elbow), upper_arm_part(layout, elbow)]
-        t = lap("geometry", t)
-        result = render(moving + still_parts, camera, still, projected_window(moving, camera))
-        t = lap("ray casting", t)
-        rng = g._rng(seed, g.FRAME_STREAM + i)
-        depth = depth_measurement(result, rng)
-        t = lap("depth sensor", t)
-        colour = color_image(result, scene_albedo(result, T, style, layout, static), layout.light, rng)
-        t = lap("colour", t)
+        last[0] = time.perf_counter()
+        colour, depth, mask = g.render_frame(scene, i, lap)
         Image.fromarray(colour).save(io.BytesIO(), format="JPEG", quality=g.JPEG_QUALITY)
         encode_png16(depth)
-        Image.fromarray((result.label == OBJECT).astype(np.uint8) * 255).save(io.BytesIO(), format="PNG", compress_level=1)
-        lap("encoding", t)
+        Image.fromarray(mask.astype("uint8") * 255).save(io.BytesIO(), format="PNG", compress_level=1)
+        lap("encoding")
     return totals
 
 

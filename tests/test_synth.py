@@ -4,7 +4,6 @@ orientation coverage, hand occlusion and regrasp, bad inputs, the sample sequenc
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path

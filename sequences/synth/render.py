@@ -27,6 +27,13 @@ class Render:
     points: np.ndarray  # hit points, camera frame (float32)
     normals: np.ndarray  # interpolated unit vertex normals, turned to face the camera (float32)
     cos_incidence: np.ndarray  # |cos| of the angle between the ray and the face normal (1 = head on; float32)
+    shadow: np.ndarray  # bool: the projector's pattern cannot reach the point (another surface is in the way)
+
+
+def crop(render: Render, window: tuple[int, int, int, int]) -> Render:
+    """The part of a render inside rows v0:v1 and columns u0:u1 (views, not copies)."""
+    v0, v1, u0, u1 = window
+    return Render(*(getattr(render, name)[v0:v1, u0:u1] for name in ("depth", "label", "points", "normals", "cos_incidence", "shadow")))
 
 
 @lru_cache(maxsize=4)
@@ -37,21 +44,33 @@ def _rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return rays, (directions / np.linalg.norm(directions, axis=1, keepdims=True)).astype(np.float32)
 
 
-def projected_window(parts: list[Part], camera: Camera, margin: int = 2) -> tuple[int, int, int, int] | None:
-    """Pixel rows v0:v1 and columns u0:u1 covering the projection of the parts (None if one is at or behind the camera)."""
+def projected_window(parts: list[Part], camera: Camera, margin: int = 2, projector: np.ndarray | None = None) -> tuple[int, int, int, int] | None:
+    """Pixel rows v0:v1 and columns u0:u1 covering the projection of the parts (None if one is at or behind the camera).
+
+    With a ``projector`` (camera-frame position, on the x axis) the window also covers the shadows
+    the parts cast on what lies behind them: up to baseline x fx / (nearest depth) pixels away
+    from the projector's side.
+    """
     vertices = np.concatenate([p.vertices for p in parts])
     if vertices[:, 2].min() <= 1e-3:
         return None
     uv, _ = camera.project(vertices)
     u0, v0 = np.floor(uv.min(axis=0)).astype(int) - margin
     u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + margin + 1
+    if projector is not None:
+        reach = int(np.ceil(abs(projector[0]) * camera.fx / vertices[:, 2].min()))
+        u0, u1 = (u0 - reach, u1) if projector[0] > 0 else (u0, u1 + reach)
     v0, u0 = max(v0, 0), max(u0, 0)
     v1, u1 = min(v1, camera.height), min(u1, camera.width)
     return (v0, max(v1, v0), u0, max(u1, u0))
 
 
-def render(parts: list[Part], camera: Camera, base: Render | None = None, window: tuple[int, int, int, int] | None = None) -> Render:
+def render(parts: list[Part], camera: Camera, base: Render | None = None, window: tuple[int, int, int, int] | None = None,
+           projector: np.ndarray | None = None) -> Render:
     """Cast one ray per pixel against all parts; ray directions have z = 1 so the hit distance is the depth z.
+
+    With a ``projector`` position (camera frame, metres), a second cast tests, per hit point,
+    whether the way to the projector is blocked (a structured-light sensor measures nothing there).
 
     With ``base`` (a render of the still parts of the scene) and ``window`` (rows v0:v1, columns
     u0:u1 that hold every moving part, see :func:`projected_window`), only the window's rays are
@@ -82,17 +101,25 @@ def render(parts: list[Part], camera: Camera, base: Render | None = None, window
     n[~hit] = 0.0
     cos = np.abs(np.einsum("ij,ij->i", answer["primitive_normals"].numpy(), unit))
     cos[~hit] = 0.0
+    points = rays[:, 3:] * depth[:, None]
+    shadow = np.zeros(len(depth), dtype=bool)
+    if projector is not None and hit.any():
+        # from just off the surface toward the projector; t in (0, 1) covers exactly the way there
+        origins = points[hit] + n[hit] * np.float32(5e-4)
+        towards = np.asarray(projector, np.float32) - origins
+        shadow[hit] = scene.test_occlusions(o3d.core.Tensor(np.concatenate([origins, towards], 1)), tnear=1e-4, tfar=1.0).numpy()
     shape = (v1 - v0, u1 - u0)
     local = Render(
         depth=depth.reshape(shape),
         label=np.where(hit, labels[prim], 0).astype(np.uint8).reshape(shape),
-        points=(rays[:, 3:] * depth[:, None]).reshape(*shape, 3),
+        points=points.reshape(*shape, 3),
         normals=n.reshape(*shape, 3),
         cos_incidence=cos.reshape(shape),
+        shadow=shadow.reshape(shape),
     )
     if shape == (height, width):
         return local
-    out = Render(*(np.array(getattr(base, name)) for name in ("depth", "label", "points", "normals", "cos_incidence")))
-    for name in ("depth", "label", "points", "normals", "cos_incidence"):
+    out = Render(*(np.array(getattr(base, name)) for name in ("depth", "label", "points", "normals", "cos_incidence", "shadow")))
+    for name in ("depth", "label", "points", "normals", "cos_incidence", "shadow"):
         getattr(out, name)[v0:v1, u0:u1] = getattr(local, name)
     return out

@@ -4,7 +4,9 @@ Depth (metres in, uint16 millimetres out, 0 = no measurement):
 - axial noise, Gaussian with sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m, independent per pixel;
 - dropout at grazing angles: certain beyond ~87 degrees between ray and surface, none below ~72;
 - random speckle holes (0.4% of pixels) and blob holes (a thresholded smooth random field);
-- shadow-like dropout next to depth jumps (> 3 cm) with probability 0.4;
+- the projector's shadow: no depth where the way from the surface to the projector (7.5 cm to the
+  camera's right, as on a PrimeSense) is blocked, the band left of every foreground edge;
+- dropout next to depth jumps (> 3 cm) with probability 0.4;
 - no measurement nearer than 0.35 m or farther than 4.5 m; rounding to millimetres.
 Colour: procedural albedo per scene part (a seeded pattern on the object, skin on the hand),
 Lambert shading with ambient light, Gaussian noise (sigma 2.5 levels).
@@ -21,6 +23,8 @@ from .render import Render
 from .scene import HAND, OBJECT, PERSON, TABLE, WALL, Layout
 
 MIN_RANGE, MAX_RANGE = 0.35, 4.5
+#: The IR projector's position in the camera frame, metres (PrimeSense baseline 7.5 cm).
+PROJECTOR = np.array([0.075, 0.0, 0.0])
 SPECKLE_RATE = 0.004
 EDGE_JUMP, EDGE_DROPOUT = 0.03, 0.4
 COLOR_NOISE = 2.5
@@ -53,6 +57,7 @@ def depth_measurement(render: Render, rng: np.random.Generator) -> np.ndarray:
     keep_chance = (1.0 - grazing_dropout_probability(render.cos_incidence)) * (1.0 - SPECKLE_RATE) * (1.0 - EDGE_DROPOUT * jump)
     keep = rng.random(z.shape, dtype=np.float32) < keep_chance
     keep &= (z >= MIN_RANGE) & (z <= MAX_RANGE)  # also drops pixels where nothing was hit (z = 0)
+    keep &= ~render.shadow
     field = ndimage.zoom(rng.standard_normal((h // 16, w // 16), dtype=np.float32), 16, order=1)[:h, :w]
     keep &= field < 2.3  # about 1% of the image in smooth-edged blobs
     millimetres = np.clip(np.rint(noisy * np.float32(1000.0)), 0, 65535)
@@ -110,56 +115,52 @@ def object_albedo(points: np.ndarray, style: ObjectStyle) -> np.ndarray:
     return colour
 
 
-def scene_albedo(render: Render, object_pose: np.ndarray, style: ObjectStyle, layout: Layout,
-                 static: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Albedo (H, W, 3) float32 of every pixel from its scene label and hit point.
-
-    ``static`` = (labels (H, W), albedo (H, W, 3)) of the scene without the moving parts: pixels
-    showing the same static part reuse that albedo (the camera and the background do not move).
-    """
+def scene_albedo(render: Render, object_pose: np.ndarray, style: ObjectStyle, layout: Layout) -> np.ndarray:
+    """Albedo (H, W, 3) float32 of every pixel from its scene label and hit point."""
     label = render.label.reshape(-1)
     points = render.points.reshape(-1, 3)
-    if static is None:
-        albedo = np.zeros((len(label), 3), dtype=np.float32)
-        todo = np.ones(len(label), dtype=bool)
-    else:
-        static_label, static_albedo = static[0].reshape(-1), static[1].reshape(-1, 3)
-        albedo = static_albedo.copy()
-        todo = (label != static_label) | (label == OBJECT) | (label == HAND)
-    sel = todo & (label == OBJECT)
+    albedo = np.zeros((len(label), 3), dtype=np.float32)
+    sel = label == OBJECT
     R, t = object_pose[:3, :3], object_pose[:3, 3]
     albedo[sel] = object_albedo((points[sel] - t) @ R, style)
-    sel = todo & (label == HAND)
+    sel = label == HAND
     p = points[sel]
     albedo[sel] = layout.skin * (1.0 + 0.05 * np.sin(p[:, :1] * 400) * np.sin(p[:, 1:2] * 370))
-    sel = todo & (label == PERSON)
+    sel = label == PERSON
     p = points[sel]
     head = np.linalg.norm(p - layout.head_centre, axis=1) < layout.head_radius * 1.25
     hair = head & (p[:, 1] < layout.head_centre[1] - 0.2 * layout.head_radius)
     person = np.where(head[:, None], layout.skin, layout.shirt)
     person[hair] = layout.hair
     albedo[sel] = person * (1.0 + 0.06 * np.sin(p[:, :1] * 150 + p[:, 1:2] * 90))
-    sel = todo & (label == WALL)
+    sel = label == WALL
     p = points[sel]
     wall = layout.wall_colour * (1.0 + 0.04 * np.sin(p[:, :1] * 7 + 1.3) * np.sin(p[:, 1:2] * 5))
     for poster in layout.posters:  # three rectangles, each a vectorised test over the wall pixels
         inside = (np.abs(p[:, 0] - poster[0]) < poster[2]) & (np.abs(p[:, 1] - poster[1]) < poster[3])
         wall[inside] = poster[4:7] * (0.8 + 0.2 * (np.sin(p[inside, 0] * 60) > 0))[:, None]
     albedo[sel] = wall
-    sel = todo & (label == TABLE)
+    sel = label == TABLE
     p = points[sel]
     grain = 0.85 + 0.15 * np.sin(p[:, 0] * 90 + 4 * np.sin(p[:, 2] * 9))
     albedo[sel] = layout.table_colour * grain[:, None]
-    sel = todo & (label == 0)
-    albedo[sel] = 0.0
     return albedo.reshape(*render.label.shape, 3)
 
 
-def color_image(render: Render, albedo: np.ndarray, light: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Shaded colour (H, W, 3) uint8: albedo x (ambient + Lambert), plus Gaussian noise; dark where nothing was hit."""
+def shade(render: Render, albedo: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """Noise-free colour (H, W, 3) float32 in 0..255: albedo x (ambient + Lambert); dark where nothing was hit."""
     lambert = np.clip(render.normals @ light.astype(np.float32), 0.0, None)
-    shade = AMBIENT + (1.0 - AMBIENT) * lambert
-    colour = albedo * (shade[..., None] * np.float32(255.0))
-    colour += rng.standard_normal(colour.shape, dtype=np.float32) * np.float32(COLOR_NOISE)
+    colour = albedo * ((AMBIENT + (1.0 - AMBIENT) * lambert)[..., None] * np.float32(255.0))
     colour[render.label == 0] = 20.0
-    return np.clip(np.rint(colour), 0, 255).astype(np.uint8)
+    return colour.astype(np.float32, copy=False)
+
+
+def add_color_noise(colour: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The camera's colour image (H, W, 3) uint8: noise-free colour plus Gaussian noise, rounded and clipped."""
+    noisy = colour + rng.standard_normal(colour.shape, dtype=np.float32) * np.float32(COLOR_NOISE)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
+def color_image(render: Render, albedo: np.ndarray, light: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Shaded colour with noise (H, W, 3) uint8 (see :func:`shade` and :func:`add_color_noise`)."""
+    return add_color_noise(shade(render, albedo, light), rng)

@@ -124,6 +124,8 @@ _BUILDERS = {"bottle": _bottle, "bowl": _bowl, "mug": _mug, "can": _can, "camera
 
 def procedural_mesh(category: str, rng: np.random.Generator) -> trimesh.Trimesh:
     """A procedural object of ``category`` (one of :data:`PROCEDURAL_CATEGORIES`), shape drawn from ``rng``."""
+    if category not in PROCEDURAL_CATEGORIES:
+        raise ValueError(f"no procedural shape for {category!r}; one of {', '.join(PROCEDURAL_CATEGORIES)}")
     return _BUILDERS[category](rng)
 
 
