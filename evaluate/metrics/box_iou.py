@@ -327,7 +327,12 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
     h = np.pi / grid
     rows = np.repeat(np.arange(n), grid)
     grid_angles = np.tile(np.arange(grid) * h, n)
-    grid_iou = iou_at(rows, grid_angles).reshape(n, grid)
+    # 3. aligned angles, evaluated in the same batch as the grid
+    aligned = _aligned_angles(Ta, Tb)
+    ok = np.isfinite(aligned)
+    a_rows, a_angles = np.nonzero(ok)[0], aligned[ok]
+    values = iou_at(np.concatenate([rows, a_rows]), np.concatenate([grid_angles, a_angles]))
+    grid_iou, a_values = values[: len(rows)].reshape(n, grid), values[len(rows):]
     best = grid_iou.max(axis=1)
     best_angle = grid_angles.reshape(n, grid)[np.arange(n), grid_iou.argmax(axis=1)]
     samples_rows, samples_angles, samples_values = [rows], [grid_angles], [grid_iou.ravel()]
@@ -340,12 +345,8 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
         better = v > best[r]
         best[r[better]], best_angle[r[better]] = v[better], a[better]
 
-    # 3. aligned angles
-    aligned = _aligned_angles(Ta, Tb)
-    ok = np.isfinite(aligned)
-    a_rows = np.nonzero(ok)[0]
     if len(a_rows):
-        consider(a_rows, aligned[ok], iou_at(a_rows, aligned[ok]))
+        consider(a_rows, a_angles, a_values)
 
     # 1. intervals [phi_i, phi_i+1] whose Lipschitz bound (f_i + f_i+1 + L h) / 2 reaches the best value
     # get a finer grid (spacing h / _SUBDIVIDE); the bound then prunes that grid in turn.
