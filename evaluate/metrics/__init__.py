@@ -7,8 +7,24 @@ symmetric objects (bottle, bowl, can) are symmetric about their object y axis.
 Modules: :mod:`.pose_errors` (translation, rotation), :mod:`.box_iou` (exact oriented IoU, symmetric
 IoU, NOCS axis-aligned IoU), :mod:`.shape_metrics` (chamfer, F-score), :mod:`.sampling` (mesh
 sampling, :class:`ShapeIndex`), :mod:`.precision` (thresholds, precision tables and curves),
-:mod:`.sample_errors` (all errors of a sample at once).  Where and why these differ from
-cpas_toolbox 1.0.0 is documented in each module and tested in tests/test_metrics_cpas_agreement.py.
+:mod:`.sample_errors` (all errors of a sample at once).  Typical use: build one ShapeIndex per object,
+call :func:`compute_sample_errors` once for all samples of a method, then :func:`precision_table` and
+:func:`precision_curves` (pure comparisons; no metric is recomputed per threshold).
+
+Where these differ from cpas_toolbox 1.0.0 (each tested in tests/test_metrics_cpas_agreement.py):
+* symmetric rotation error: cpas takes arccos of an unclamped dot product; NaN > threshold is False, so
+  upside-down predictions of symmetric objects often count as correct.  Ours: 180 degrees.
+* symmetric IoU: cpas raises ValueError (``Rotation.from_rotvec`` of a scalar); ours is the exact
+  maximum over the rotation about y.
+* oriented IoU: cpas (Qhull) raises QhullError for touching or zero-volume boxes and draws from NumPy's
+  global random state; ours is exact (agrees with cpas within 1e-9 where cpas works), deterministic,
+  and 0 for touching or zero-volume boxes.
+* NaN predictions: cpas passes them (NaN comparisons are False); ours marks them failed, never correct.
+* Speed: errors are computed once per sample, thresholds are array comparisons.
+Chamfer distance and F-score are the same definitions as cpas's and agree bit for bit.
+
+Note: ``evaluate.metrics.box_iou`` is re-exported as the function; import the module's other names
+with ``from evaluate.metrics.box_iou import ...``.
 """
 
 from evaluate.metrics.box_iou import (
