@@ -84,6 +84,7 @@ class App:
         gui.add_command("Look through camera", hotkey="H").on_trigger(lambda event: self.look_through_camera(event.client))
 
         self.state.subscribe(self._on_change)
+        self.state.on_error = self.say
         server.on_client_connect(self._on_connect)
         self.redraw("frame")
 

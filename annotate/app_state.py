@@ -111,6 +111,8 @@ class AppState:
         self.redo_stack: list[Annotation] = []
         self.saves = 0
         self._listeners: list[Listener] = []
+        #: called with a one-line message when a change cannot be saved (the page shows it)
+        self.on_error: Callable[[str], None] | None = None
 
     # --- observers -------------------------------------------------------------------------
     def subscribe(self, listener: Listener) -> None:
@@ -182,11 +184,17 @@ class AppState:
         """Apply ``change`` to the document as one undoable step, save it, redraw."""
         with self.lock:
             before = self.annotation.copy()
-            change(self.annotation)
+            try:
+                change(self.annotation)
+                self._save()
+            except BaseException as error:
+                # the file on disk is still the previous version (atomic write): so is the session
+                self.annotation = before
+                self._report(error)
+                raise
             self.undo_stack.append(before)
             del self.undo_stack[:-UNDO_DEPTH]
             self.redo_stack.clear()
-            self._save()
         self._notify("document")
 
     def set_pose(self, position, orientation, source: str = "manual", frame_id: str | None = None, keep_extra: bool = False) -> None:
@@ -219,9 +227,16 @@ class AppState:
         with self.lock:
             if not source:
                 return False
-            target.append(self.annotation.copy())
-            self.annotation = source.pop()
-            self._save()
+            current = self.annotation
+            self.annotation = source[-1]
+            try:
+                self._save()
+            except BaseException as error:
+                self.annotation = current
+                self._report(error)
+                raise
+            source.pop()
+            target.append(current)
         self._notify("document")
         return True
 
@@ -232,6 +247,10 @@ class AppState:
     def redo(self) -> bool:
         """Redo the last undone change; False when there is none."""
         return self._restore(self.redo_stack, self.undo_stack)
+
+    def _report(self, error: BaseException) -> None:
+        if self.on_error is not None:
+            self.on_error(f"Not saved ({error}); {self.path} is unchanged.")
 
     def _save(self) -> None:
         save_annotation(self.annotation, self.path)

@@ -154,3 +154,27 @@ def test_bad_inputs_are_refused(seq):
         AppState(seq)
     with pytest.raises(InputError, match="does not exist"):
         AppState(seq, seq.root / "missing_folder" / "doc.yaml")
+
+
+def test_a_failed_save_keeps_the_previous_file_and_session(seq, monkeypatch):
+    import os
+
+    state = AppState(seq)
+    state.set_extents([0.05, 0.05, 0.05])
+    on_disk = state.path.read_text()
+
+    def crash(*args, **kwargs):  # the rename of the atomic write never happens (a kill, a full disk)
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", crash)
+    with pytest.raises(OSError):
+        state.set_extents([0.07, 0.07, 0.07])
+    with pytest.raises(OSError):
+        state.undo()
+    assert state.path.read_text() == on_disk
+    np.testing.assert_allclose(state.annotation.extents, [0.05] * 3)
+    assert len(state.undo_stack) == 1 and not state.redo_stack
+    assert not [p for p in state.path.parent.iterdir() if p.name.endswith(".tmp")]
+    monkeypatch.undo()
+    assert state.undo()
+    np.testing.assert_allclose(load_annotation(state.path).extents, [DEFAULT_BOX_SIZE] * 3)

@@ -193,3 +193,33 @@ def test_box_overlay_and_timeline_images():
     for k, status in enumerate(["manual", "tracked", "flagged", "none"]):
         assert tuple(strip[10, k * 100 + 50]) == STATUS_COLORS[status]
     assert tuple(strip[0, 250]) == (255, 255, 255) and tuple(strip[0, 50]) == STATUS_COLORS["manual"]
+
+
+def test_look_through_camera_toggles_the_sensor_view(app):
+    app.look_button.value = True
+    assert app.look_through and not app.scene.frustum.visible
+    assert "through the camera" in app.message.content
+    app.look_button.value = True
+    assert not app.look_through
+    app.frustum_box.value = True
+    assert app.scene.frustum.visible
+
+
+def test_unreadable_sequences_are_refused_with_one_line(tmp_path, capsys):
+    from annotate.cli import main
+    from sequences.errors import run_cli
+
+    with pytest.raises(SystemExit) as exit_info:
+        run_cli(main, [str(tmp_path / "missing")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "missing" in err and "\n" not in err
+    # a corrupt first frame is refused before anything is served
+    root, _ = make_sequence(tmp_path / "corrupt", frames=1)
+    depth = next((root / "depth").iterdir())
+    depth.write_bytes(b"not a png")
+    with pytest.raises(SystemExit) as exit_info:
+        run_cli(main, [str(root), "--port", "0"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert depth.name in err and "corrupt" in err and "\n" not in err
