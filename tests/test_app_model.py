@@ -47,7 +47,6 @@ def test_accumulated_points_of_true_poses_lie_on_the_true_box(truth):
     assert empty.shape == (0, 3)
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(reconstruct_module() is None, reason="reconstruct pipeline not installed")
 def test_mesh_preview_and_export_from_the_page(truth, tmp_path):
     root = tmp_path / "box_seq"

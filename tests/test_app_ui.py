@@ -223,3 +223,23 @@ def test_unreadable_sequences_are_refused_with_one_line(tmp_path, capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert depth.name in err and "corrupt" in err and "\n" not in err
+
+
+@pytest.mark.skipif(tracking_engine() is None, reason="tracking engine (annotate.tracking) not installed")
+def test_track_all_in_the_background_fills_every_frame(app, sequence_root):
+    _, poses = sequence_root
+    ids = app.sequence.ids
+    app.state.set_extents(TRUE_EXTENTS)
+    app.commit_box(*poses[0])
+    app.state.set_frame(3)
+    app.commit_box(*poses[3])
+    assert app.tracking.start_tracking(0, len(ids) - 1, wait=True)
+    assert app.tracking.progress.value == 100.0
+    doc = load_annotation(app.state.path)
+    assert set(doc.frames) == set(ids)
+    assert [doc.frames[f].source for f in ids] == ["manual", "tracked", "tracked", "manual"]
+    for k in (1, 2):  # the tracked frames land near the truth
+        assert np.linalg.norm(doc.frames[ids[k]].position - poses[k][0]) < 0.01
+    assert "Tracked 4 frames" in app.message.content
+    app.editing.undo.value = True  # the whole run is one undo step
+    assert set(load_annotation(app.state.path).frames) == {ids[0], ids[3]}
