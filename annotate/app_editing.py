@@ -20,6 +20,8 @@ if TYPE_CHECKING:
     from .app import App
 
 NUDGE_STEPS_MM = ("1", "2", "5", "10", "20")
+#: Snap upright trusts an estimated symmetry axis only this close to the box's y (degrees).
+MAX_AXIS_SNAP_DEG = 20.0
 
 
 class EditingPanel:
@@ -134,7 +136,12 @@ class EditingPanel:
         app.say(f"Fitted the box to {len(cloud)} points.")
 
     def snap_upright(self) -> None:
-        """Canonical turn about the symmetry axis (the axis estimated from the points when the tracking engine offers it)."""
+        """Symmetric categories: the box's y on the symmetry axis estimated from the points (when the tracking
+        engine offers the estimate), and the unobservable turn about it made canonical (object +z towards the camera).
+
+        The points are this frame's inside the box plus the accumulated points of the posed frames, which
+        see the object from more sides than one frame does.
+        """
         app = self.app
         if app.state.annotation.symmetry != "y":
             app.say("Snap upright is for symmetric categories (symmetry y).")
@@ -146,11 +153,21 @@ class EditingPanel:
         except ImportError:
             estimate_axis = None
         if estimate_axis is not None:
+            from .app_model import accumulate_model
+
+            cloud = frame_points(app.sequence, app.state.frame, box=(position, orientation, extents), margin=0.005)
+            with app.state.lock:
+                document = app.state.annotation.copy()
+            model, _ = accumulate_model(app.sequence, document)
+            R = box_edits._rotation(orientation)
+            points = np.vstack([cloud.points, model @ R.T + position])
             try:
-                cloud = frame_points(app.sequence, app.state.frame, box=(position, orientation, extents), margin=0.01)
-                up = estimate_axis(cloud.points, position, orientation, extents)
+                up = estimate_axis(points, position, orientation, extents)
             except Exception as error:  # an estimate that fails leaves the current axis
                 app.say(f"Axis estimate failed ({error}); kept the box's axis.")
+            if up is not None and np.degrees(np.arccos(np.clip(abs(np.dot(up, R[:, 1])), -1, 1))) > MAX_AXIS_SNAP_DEG:
+                app.say(f"The estimated axis is more than {MAX_AXIS_SNAP_DEG:.0f} degrees off the box's: kept the box's axis.")
+                up = None
         app.commit_box(position, box_edits.upright_about_y(position, orientation, up))
 
     def _on_category(self, event) -> None:

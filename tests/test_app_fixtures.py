@@ -27,11 +27,18 @@ def true_pose(k: int) -> tuple[np.ndarray, np.ndarray]:
     return position, (upright * turn).as_quat()
 
 
-def render(camera: Camera, position, orientation, extents=TRUE_EXTENTS, wall: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (H, W, 3) uint8 and depth (H, W) float32 m of the box in front of a wall at ``wall`` m."""
+def render(camera: Camera, position, orientation, extents=TRUE_EXTENTS, wall: float = 1.2, shape: str = "box") -> tuple[np.ndarray, np.ndarray]:
+    """Colour (H, W, 3) uint8 and depth (H, W) float32 m of the object in front of a wall at ``wall`` m.
+
+    ``shape`` "box" fills the extents; "cylinder" is the cylinder about object y inscribed in them.
+    """
     scene = o3d.t.geometry.RaycastingScene()
-    box = o3d.geometry.TriangleMesh.create_box(*extents)
-    box.translate(-np.asarray(extents) / 2)
+    if shape == "cylinder":
+        box = o3d.geometry.TriangleMesh.create_cylinder(radius=extents[0] / 2, height=extents[1], resolution=64, split=1)
+        box.rotate(Rotation.from_euler("x", -90, degrees=True).as_matrix(), center=(0, 0, 0))  # open3d's z axis to y
+    else:
+        box = o3d.geometry.TriangleMesh.create_box(*extents)
+        box.translate(-np.asarray(extents) / 2)
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(orientation).as_matrix()
     T[:3, 3] = position
@@ -56,8 +63,8 @@ def render(camera: Camera, position, orientation, extents=TRUE_EXTENTS, wall: fl
     return color, depth
 
 
-def make_sequence(root: Path, frames: int = 4) -> tuple[Path, list[tuple[np.ndarray, np.ndarray]]]:
-    """Write a ``frames``-frame sequence under ``root``; returns (root, true poses per frame)."""
+def make_sequence(root: Path, frames: int = 4, shape: str = "box", extents=TRUE_EXTENTS) -> tuple[Path, list[tuple[np.ndarray, np.ndarray]]]:
+    """Write a ``frames``-frame sequence of a ``shape`` under ``root``; returns (root, true poses per frame)."""
     root = Path(root)
     (root / "rgb").mkdir(parents=True, exist_ok=True)
     (root / "depth").mkdir(parents=True, exist_ok=True)
@@ -65,7 +72,7 @@ def make_sequence(root: Path, frames: int = 4) -> tuple[Path, list[tuple[np.ndar
     poses = []
     for k in range(frames):
         position, orientation = true_pose(k)
-        color, depth = render(camera, position, orientation)
+        color, depth = render(camera, position, orientation, extents, shape=shape)
         stamp = 33_333 * k
         Image.fromarray(color).save(root / "rgb" / f"{k + 1:07d}-{stamp:012d}.jpg", quality=92)
         Image.fromarray(np.round(depth * 1000).astype(np.uint16)).save(root / "depth" / f"{k + 1:07d}-{stamp:012d}.png")

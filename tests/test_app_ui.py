@@ -243,3 +243,32 @@ def test_track_all_in_the_background_fills_every_frame(app, sequence_root):
     assert "Tracked 4 frames" in app.message.content
     app.editing.undo.value = True  # the whole run is one undo step
     assert set(load_annotation(app.state.path).frames) == {ids[0], ids[3]}
+
+
+@pytest.mark.skipif(tracking_engine() is None, reason="tracking engine (annotate.tracking) not installed")
+def test_snap_upright_puts_the_box_axis_on_a_cylinder_axis(tmp_path):
+    extents = np.array([0.08, 0.14, 0.08])
+    root, poses = make_sequence(tmp_path / "can_seq", frames=3, shape="cylinder", extents=extents)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = App(server, open_sequence(root))
+    try:
+        app.editing.category.value = "can"
+        assert app.state.annotation.symmetry == "y"
+        app.state.set_extents(extents)
+        position, orientation = poses[0]
+        true_axis = Rotation.from_quat(orientation).as_matrix()[:, 1]
+        tilted = (Rotation.from_quat(orientation) * Rotation.from_euler("zx", [7, -5], degrees=True)).as_quat()
+        app.commit_box(position, tilted)
+        app.editing.upright.value = True
+        snapped = load_annotation(app.state.path).frames["0000001"]
+        axis = snapped.matrix[:3, 1]
+        before = np.degrees(np.arccos(np.clip(Rotation.from_quat(tilted).as_matrix()[:, 1] @ true_axis, -1, 1)))
+        after = np.degrees(np.arccos(np.clip(axis @ true_axis, -1, 1)))
+        assert before > 8.0 and after < 2.0, (before, after)
+        # the free turn about the axis is the canonical one: object +z towards the camera
+        z = snapped.matrix[:3, 2]
+        to_camera = -snapped.position - np.dot(-snapped.position, axis) * axis
+        assert np.dot(z, to_camera / np.linalg.norm(to_camera)) > 0.999
+    finally:
+        app.close()
+        server.stop()
