@@ -17,6 +17,7 @@ class TrackingConfig:
     crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
     extents_slack: float = 0.08  #: the box is grown by this share too (hand-placed extents are off by up to ~8%)
     registration: RegistrationParams = field(default_factory=RegistrationParams)
+    model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)

@@ -25,7 +25,7 @@ from .config import TrackingConfig
 from .frames import FrameStore
 from .propagate import run_chain
 from .quality import flag_reasons, in_box_share, pose_difference, rounded
-from .reconcile import blend_chains, common_correction
+from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .refine import build_model, min_hits_for, refine_all
 from .symmetry import estimate_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
@@ -97,24 +97,33 @@ def track_sequence(
     if not anchors:
         raise ValueError("no frame in the range has a box: place a box in at least one frame first")
     symmetric = annotation.symmetry == "y"
-    tracker = Tracker(FrameStore(sequence, config.stride), annotation.extents, symmetric, config)
+    tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
     placed = {m: annotation.frames[m].matrix for m in anchors}
     position = {f: i for i, f in enumerate(ids)}
     a_idx = [position[m] for m in anchors]
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
     steps = _Steps(chain_frames + config.global_rounds * len(ids), progress)
 
-    # 2-3: chains and their reconciliation
-    results: dict[str, FrameResult] = {m: FrameResult(placed[m].copy(), True, {}) for m in anchors}
-    if a_idx[0] > 0:
-        results.update(run_chain(tracker, ids[a_idx[0]::-1], placed[anchors[0]], steps))
+    # 2-3: chains from every anchor, brought into anchor 0's object frame, and reconciled
+    results: dict[str, FrameResult] = {}
+    forwards, backwards = [], []
     for a, b in zip(a_idx, a_idx[1:]):
         segment = ids[a : b + 1]
-        forward = run_chain(tracker, segment, placed[ids[a]], steps)
-        backward = run_chain(tracker, segment[::-1], placed[ids[b]], steps)
-        results.update(blend_chains(segment, forward, backward, symmetric))
+        forwards.append(run_chain(tracker, segment, placed[ids[a]], steps))
+        backwards.append(run_chain(tracker, segment[::-1], placed[ids[b]], steps))
+    frames_of = chain_frame_offsets(anchors, placed, forwards, backwards, symmetric)
+    for k, m in enumerate(anchors):
+        results[m] = FrameResult(placed[m] @ frames_of[k], True, {})
+    for k, (a, b) in enumerate(zip(a_idx, a_idx[1:])):
+        forward = {f: FrameResult(r.pose @ frames_of[k], r.ok, r.figures) for f, r in forwards[k].items()}
+        backward = {f: FrameResult(r.pose @ frames_of[k + 1], r.ok, r.figures) for f, r in backwards[k].items()}
+        results.update(blend_chains(ids[a : b + 1], forward, backward, symmetric))
+    if a_idx[0] > 0:
+        chain = run_chain(tracker, ids[a_idx[0] :: -1], results[anchors[0]].pose, steps)
+        results.update(chain)
     if a_idx[-1] < len(ids) - 1:
-        results.update(run_chain(tracker, ids[a_idx[-1] :], placed[anchors[-1]], steps))
+        chain = run_chain(tracker, ids[a_idx[-1] :], results[anchors[-1]].pose, steps)
+        results.update(chain)
     results = {f: results[f] for f in ids}
 
     # 4: joint refinement against the model of all frames
@@ -182,7 +191,7 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
     else:
         raise ValueError("no posed frame to start from: place a box first")
     symmetric = annotation.symmetry == "y"
-    tracker = Tracker(FrameStore(sequence, config.stride), annotation.extents, symmetric, config)
+    tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
     if others:
         here = ids.index(frame_id)
         # the nearest posed frames in time see most of what this one sees

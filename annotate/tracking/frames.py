@@ -10,11 +10,20 @@ from sequences.pointcloud import frame_points
 from sequences.reader import Sequence
 
 
+def _backproject_strided(camera, depth: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project a depth image subsampled by ``stride`` (pixel (i, j) is full-resolution (stride i, stride j))."""
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
+    z = depth[v, u].astype(np.float64)
+    points = np.stack([(u * stride - camera.cx) / camera.fx * z, (v * stride - camera.cy) / camera.fy * z, z], axis=1)
+    return points, v * stride * camera.width + u * stride
+
+
 class FrameStore:
     """Caches each frame's back-projected points (camera frame, m) and colours (0..1), subsampled by ``stride``."""
 
-    def __init__(self, sequence: Sequence, stride: int = 2, cache: bool = True) -> None:
+    def __init__(self, sequence: Sequence, stride: int = 2, cache: bool = True, colors: bool = True) -> None:
         self.sequence = sequence
+        self.colors = colors
         self.stride = int(stride)
         self.cache = cache
         self._frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -25,8 +34,13 @@ class FrameStore:
         if frame_id in self._frames:
             return self._frames[frame_id]
         try:
-            cloud = frame_points(self.sequence, frame_id, stride=self.stride)
-            out = (cloud.points.astype(np.float32), cloud.colors.astype(np.float32) / 255.0)
+            if self.colors:
+                cloud = frame_points(self.sequence, frame_id, stride=self.stride)
+                out = (cloud.points.astype(np.float32), cloud.colors.astype(np.float32) / 255.0)
+            else:  # geometry only: decoding the colour image would cost a third of the read
+                depth = self.sequence.depth(frame_id)[:: self.stride, :: self.stride]
+                points, _ = _backproject_strided(self.sequence.camera, depth, self.stride)
+                out = (points.astype(np.float32), np.zeros((len(points), 3), np.float32))
         except InputError as error:  # a corrupt or empty frame: no points, the frame gets flagged
             self.errors[frame_id] = str(error)
             out = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))

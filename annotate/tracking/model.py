@@ -32,6 +32,7 @@ class ObjectModel:
         self.frames = 0
         self._target: ModelTarget | None = None
         self._target_key: tuple | None = None
+        self._adds_since_target = 0
 
     def copy(self) -> "ObjectModel":
         other = ObjectModel(self.voxel_size)
@@ -59,6 +60,7 @@ class ObjectModel:
             keep &= np.all(np.abs(points_obj) <= self.half, axis=1)
         points_obj, colors = points_obj[keep], colors[keep]
         self.frames += 1
+        self._adds_since_target += 1
         if len(points_obj) == 0:
             return
         keys, inverse = np.unique(self._keys(points_obj), return_inverse=True)
@@ -90,18 +92,21 @@ class ObjectModel:
         count = self.count[keep][:, None].astype(np.float64)
         return self.sum_xyz[keep] / count, self.sum_rgb[keep] / count
 
-    def target(self, min_hits: int = 1, min_share: float = 0.5) -> ModelTarget:
-        """The registration target, cached until the model changes.
+    def target(self, min_hits: int = 1, min_share: float = 0.5, refresh_every: int = 1) -> ModelTarget:
+        """The registration target, cached until the model changes (or ``refresh_every`` frames were added).
 
         Uses voxels hit in >= ``min_hits`` frames unless that would keep less than ``min_share``
-        of the voxels (a young model, seen from few frames), then all of them.
+        of the voxels (a young model, seen from few frames), then all of them. Rebuilding costs
+        a normal estimation, so a growing chain model refreshes it only every few frames.
         """
         key = (len(self.keys), int(self.hits.sum()), min_hits)
-        if self._target is None or self._target_key != key:
+        stale = self._target_key != key and self._adds_since_target >= refresh_every
+        if self._target is None or stale or (self._target_key is not None and self._target_key[2] != min_hits):
             hits = min_hits if np.count_nonzero(self.hits >= min_hits) >= min_share * len(self.hits) else 1
             points, colors = self.points(hits)
             self._target = ModelTarget(points, colors, self.voxel_size)
             self._target_key = key
+            self._adds_since_target = 0
         return self._target
 
 

@@ -40,9 +40,9 @@ def run_chain(
     previous, before = start_pose, None
     for frame_id in frame_ids[1:]:
         guess = predict(previous, before) if before is not None else previous.copy()
-        result = tracker.register(frame_id, guess, model)
+        result = tracker.register(frame_id, guess, model, refresh_every=config.model_refresh)
         if not result.ok and before is not None:
-            result = tracker.register(frame_id, previous.copy(), model)  # the velocity guess may have overshot
+            result = tracker.register(frame_id, previous.copy(), model, refresh_every=config.model_refresh)  # the velocity guess may have overshot
         results[frame_id] = result
         if result.ok and result.figures.get("fitness", 0.0) >= config.min_fitness:
             tracker.add_to_model(model, frame_id, result.pose)

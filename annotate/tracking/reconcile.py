@@ -72,7 +72,64 @@ def common_correction(tracked: dict[str, np.ndarray], placed: dict[str, np.ndarr
     rotations = [c[:3, :3] for c in corrections]
     if symmetric:
         rotations = [closest_about_y(R, rotations[0]) for R in rotations]
+    # the median-nearest corrections only: one badly placed (or badly tracked) anchor must not drag the rest
+    if len(corrections) >= 3:
+        centre = np.median(np.stack([c[:3, 3] for c in corrections]), axis=0)
+        spread = [np.linalg.norm(c[:3, 3] - centre) + 0.002 * np.degrees(np.arccos(np.clip((np.trace(R.T @ Rotation.from_matrix(np.stack(rotations)).mean().as_matrix()) - 1) / 2, -1, 1))) for c, R in zip(corrections, rotations)]
+        keep = np.asarray(spread) <= 3 * np.median(spread) + 1e-9
+        corrections = [c for c, k in zip(corrections, keep) if k]
+        rotations = [R for R, k in zip(rotations, keep) if k]
     out = np.eye(4)
     out[:3, :3] = Rotation.from_matrix(np.stack(rotations)).mean().as_matrix()
     out[:3, 3] = np.mean([c[:3, 3] for c in corrections], axis=0)
     return out
+
+
+def chain_frame_offsets(
+    anchors: list[str],
+    placed: dict[str, np.ndarray],
+    forwards: list[dict[str, FrameResult]],
+    backwards: list[dict[str, FrameResult]],
+    symmetric: bool,
+    max_link_deg: float = 8.0,
+    max_link_m: float = 0.015,
+) -> list[np.ndarray]:
+    """Per anchor k, the object-frame change D_k (4x4) that brings poses in anchor k's frame into anchor 0's.
+
+    Each placed box has its own small error E_k (placed = true @ E_k), so chains started from
+    different anchors live in slightly different object frames and would leave a seam where they
+    meet. The chain from anchor k that reaches anchor k+1 measures X = E_(k+1)^-1 E_k as
+    ``inv(placed[k+1]) @ forward[k+1]``; the backward chain measures its inverse. Their mean
+    (drift of the two chains averages) links consecutive anchors: D_(k+1) = X D_k, D_0 = I.
+    Hand-placed boxes differ by a few degrees and millimetres; a link estimate beyond
+    ``max_link_deg`` / ``max_link_m`` means its chain lost the object and is dropped. A link
+    with no estimate left is the identity (trust the placed boxes as they are).
+    """
+    offsets = [np.eye(4)]
+    for k in range(len(anchors) - 1):
+        a, b = anchors[k], anchors[k + 1]
+        estimates = []
+        f, r = forwards[k].get(b), backwards[k].get(a)
+        if f is not None and f.ok:
+            estimates.append(np.linalg.inv(placed[b]) @ f.pose)
+        if r is not None and r.ok:
+            estimates.append(np.linalg.inv(np.linalg.inv(placed[a]) @ r.pose))
+        estimates = [e for e in estimates if _small(e, symmetric, max_link_deg, max_link_m)]
+        if len(estimates) == 2 and not _small(np.linalg.inv(estimates[0]) @ estimates[1], symmetric, max_link_deg, max_link_m):
+            estimates = []  # the two chains tell different stories: neither is trusted
+        if not estimates:
+            link = np.eye(4)
+        else:
+            rotations = [e[:3, :3] for e in estimates]
+            if symmetric:
+                rotations = [closest_about_y(R, np.eye(3)) for R in rotations]
+            link = np.eye(4)
+            link[:3, :3] = Rotation.from_matrix(np.stack(rotations)).mean().as_matrix()
+            link[:3, 3] = np.mean([e[:3, 3] for e in estimates], axis=0)
+        offsets.append(link @ offsets[-1])
+    return offsets
+
+
+def _small(T: np.ndarray, symmetric: bool, max_deg: float, max_m: float) -> bool:
+    deg, metres = pose_difference(np.eye(4), T, symmetric)
+    return deg <= max_deg and metres <= max_m

@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from .model import ObjectModel
+from .propagate import predict
 from .tracker import FrameResult, Tracker
 
 
@@ -42,21 +43,34 @@ def refine_all(
 ) -> dict[str, FrameResult]:
     """Re-register every frame of ``results`` (in order) to the model of all of them, ``rounds`` times.
 
+    The model is built from the frames that are not suspect (registration failed, or the chains
+    disagree); a suspect frame starts from its predecessor's refined pose (constant velocity)
+    instead of its own, so a chain that lost the object is repaired against the whole model.
     A frame whose registration fails keeps its pose and figures (with the failure noted).
     """
     config = tracker.config
     for _ in range(rounds):
-        poses = {k: r.pose for k, r in results.items()}
-        model = build_model(tracker, poses, config.max_global_frames, list(anchors))
+        poses = {k: r.pose for k, r in results.items() if not suspect(r, config)}
+        if len(poses) < max(3, len(results) // 4):
+            poses = {k: r.pose for k, r in results.items()}
+        model = build_model(tracker, poses, config.max_global_frames, [a for a in anchors if a in poses])
         hits = min_hits_for(model, config)
         updated: dict[str, FrameResult] = {}
+        last: list[np.ndarray] = []
         for frame_id, previous in results.items():
-            result = tracker.register(frame_id, previous.pose, model, hits)
+            init = previous.pose
+            if suspect(previous, config) and last:
+                init = predict(last[-1], last[-2]) if len(last) > 1 else last[-1]
+            result = tracker.register(frame_id, init, model, hits)
+            if result.ok and init is not previous.pose and result.figures.get("fitness", 0.0) < config.min_fitness:
+                result = tracker.register(frame_id, previous.pose, model, hits)  # the prediction was worse than the chains' pose
             if result.ok:
                 figures = dict(previous.figures)
                 figures.update(result.figures)
                 figures.pop("error", None)
                 updated[frame_id] = FrameResult(result.pose, True, figures)
+                if result.figures.get("fitness", 0.0) >= config.min_fitness:
+                    last = (last + [result.pose])[-2:]
             else:
                 figures = dict(previous.figures)
                 figures.setdefault("error", result.figures.get("error", "registration failed"))
@@ -65,3 +79,13 @@ def refine_all(
                 step()
         results = updated
     return results
+
+
+def suspect(result: FrameResult, config) -> bool:
+    """Whether a frame's current pose is doubtful: failed, or its two chains disagree beyond the thresholds."""
+    figures = result.figures
+    return (
+        not result.ok
+        or figures.get("chain_disagreement_deg", 0.0) > config.max_chain_disagreement_deg
+        or figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m
+    )

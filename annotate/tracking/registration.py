@@ -97,7 +97,7 @@ def _source_cloud(points: np.ndarray, colors: np.ndarray | None) -> o3d.geometry
 
 def _icp_open3d(backend: str, source, target: ModelTarget, init: np.ndarray, params: RegistrationParams, voxel: float) -> np.ndarray:
     reg = o3d.pipelines.registration
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=params.iterations)
+    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5, max_iteration=params.iterations)
     T = init
     for distance in (params.max_distance, params.fine_distance):
         if backend == "point_to_plane":

@@ -105,3 +105,18 @@ def snap_upright(pose: np.ndarray, axis: np.ndarray, point: np.ndarray) -> np.nd
     fix[:3, :3] = R_fix
     fix[:3, 3] = origin
     return np.asarray(pose, dtype=np.float64) @ fix
+
+
+def estimate_axis(points_cam: np.ndarray, position, orientation, extents=None, normal_radius: float = 0.012) -> np.ndarray:
+    """Camera-frame unit direction (3,) of the symmetry axis of camera-frame points around a box.
+
+    The box (``position`` m, ``orientation`` x y z w object to camera) gives the starting axis (its
+    y); the result is signed to agree with it. ``extents`` is accepted for the browser tool's call
+    and unused. Raises ValueError with too few points.
+    """
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_quat(np.asarray(orientation, dtype=np.float64)).as_matrix()
+    local = (np.asarray(points_cam, dtype=np.float64).reshape(-1, 3) - np.asarray(position, dtype=np.float64)) @ R
+    axis, _, _ = estimate_symmetry_axis(local, normal_radius=normal_radius)
+    return R @ axis

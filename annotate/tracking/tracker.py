@@ -47,7 +47,7 @@ class Tracker:
         points, colors = self.crop(frame_id, pose, margin=0.0)
         model.add_frame(points, colors, pose, weight)
 
-    def register(self, frame_id: str, init_pose: np.ndarray, model: ObjectModel, min_hits: int = 1) -> FrameResult:
+    def register(self, frame_id: str, init_pose: np.ndarray, model: ObjectModel, min_hits: int = 1, refresh_every: int = 1) -> FrameResult:
         """Register a frame to ``model`` starting from ``init_pose`` (4x4); never raises on bad data."""
         config = self.config
         points, colors = self.crop(frame_id, init_pose)
@@ -58,7 +58,7 @@ class Tracker:
         if len(points) < config.min_points:
             figures["error"] = f"only {len(points)} points in the box"
             return FrameResult(init_pose.copy(), False, figures)
-        target = model.target(min_hits)
+        target = model.target(min_hits, refresh_every=refresh_every)
         result = register(points, target, invert(init_pose), config.backend, config.registration, colors)
         if not result.ok:
             figures["error"] = result.reason

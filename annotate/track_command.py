@@ -1,0 +1,58 @@
+"""``annotate SEQ --track``: refine the manual frames, give every frame a tracked pose, write the document."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from sequences.annotation import annotation_path, load_annotation, save_annotation
+from sequences.errors import InputError
+from sequences.reader import open_sequence
+
+
+def run_track(args) -> int:
+    """Headless tracking (``args.sequence``, ``args.annotation``); returns the exit code.
+
+    Bad input (no sequence folder, a malformed or missing document, no manual frame) raises
+    InputError, which the command line turns into a one-line error and exit code 2.
+    """
+    from tqdm import tqdm
+
+    from .tracking import TrackingConfig, track_sequence
+
+    root = args.sequence
+    if root is None:
+        from sequences.sample import sample_sequence
+
+        root = sample_sequence()
+    sequence = open_sequence(root)
+    path = annotation_path(sequence.root, getattr(args, "annotation", None))
+    annotation = load_annotation(path, default_sequence=sequence.name)
+    if not annotation.frames:
+        raise InputError(path, "no frame has a box: place a box in two to four frames first (annotate SEQ)")
+    unknown = sorted(set(annotation.frames) - set(sequence.ids))
+    if unknown:
+        raise InputError(path, f"frame {unknown[0]} is not in the sequence {sequence.root}")
+    config = TrackingConfig()
+    bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    start = time.perf_counter()
+    try:
+        tracked = track_sequence(sequence, annotation, config=config, progress=progress)
+    except ValueError as error:
+        raise InputError(path, str(error)) from error
+    finally:
+        bar.close()
+    save_annotation(tracked, path)
+    flagged = [f for f, pose in tracked.frames.items() if pose.extra.get("flagged")]
+    seconds = time.perf_counter() - start
+    print(
+        f"tracked {len(sequence)} frames of {sequence.name} in {seconds:.1f} s ({1000 * seconds / max(len(sequence), 1):.0f} ms/frame); "
+        f"{len(flagged)} flagged for review; wrote {path}"
+    )
+    return 0
