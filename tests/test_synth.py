@@ -16,6 +16,7 @@ from PIL import Image
 
 from sequences.annotation import Annotation
 from sequences.camera import Camera
+from sequences.errors import InputError
 from sequences.reader import open_sequence
 from sequences.synth import generate_sequence, load_truth, truth_annotation
 
@@ -209,6 +210,10 @@ def test_truth_annotation_perturbs_within_bounds(mug):
         angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ P[:3, :3]) - 1) / 2, -1, 1)))
         assert angle <= 5 + 1e-6 and np.linalg.norm(T[:3, 3] - P[:3, 3]) <= 0.01 + 1e-9
         assert ann.frames[frame_id].source == "manual"
+    with pytest.raises(InputError, match="no true pose"):
+        truth_annotation(truth, ["9999999"])
+    with pytest.raises(InputError, match="no truth file"):
+        load_truth(mug.parent)
     exact = truth_annotation(truth, ids)
     for frame_id in ids:
         np.testing.assert_allclose(exact.frames[frame_id].matrix, truth.poses[frame_id], atol=1e-9)
