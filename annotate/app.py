@@ -218,6 +218,7 @@ def resolve_sequence(path: str | None) -> Path:
     try:
         from sequences.sample import sample_sequence
 
+        print("annotate: no sequence given: opening the bundled sample (generated on first use)", flush=True)
         return Path(sample_sequence())
     except ImportError as error:
         raise InputError(None, f"no sequence given and the bundled sample is not available ({error}); run: annotate SEQ") from error

@@ -157,5 +157,10 @@ def test_annotate_in_headless_chromium(server, tmp_path):
                 assert doc.frames[frame_2].source == "refined"
                 other.get_by_text("refined", exact=False).first.wait_for(timeout=120_000)
             assert document.with_name(document.name + ".bak").exists() or before is None
+
+            # hotkeys: N is the next frame (a viser command, as in its command palette)
+            page.mouse.click(50, 300)  # focus on the 3D view, not on a panel input
+            page.keyboard.press("n")
+            page.get_by_text("frame 3/", exact=False).first.wait_for()
         finally:
             browser.close()
