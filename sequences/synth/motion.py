@@ -146,8 +146,21 @@ class GraspPlanner:
         uv[flip] = 1 - uv[flip]
         tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[face]]
         self.samples = tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
-        self.sample_normals = np.asarray(mesh.face_normals)[face]
+        normals = np.asarray(mesh.face_normals)[face]
+        # a palm needs open space in front of it: reject points inside a cavity (a mug's inside) and turn
+        # normals that point into the object (scanned meshes wind their faces either way)
+        ahead = self._blocked(self.samples, normals)
+        behind = self._blocked(self.samples, -normals)
+        flip = ahead & ~behind
+        normals[flip] *= -1.0
+        self.sample_normals = normals
+        self.open = ~(ahead & behind)
         self.diagonal = float(np.linalg.norm(mesh.extents))
+
+    def _blocked(self, points: np.ndarray, directions: np.ndarray, reach: float = 0.12) -> np.ndarray:
+        """Whether a ray from just off each point along its direction meets the object within ``reach`` metres."""
+        rays = np.concatenate([points + directions * 1e-3, directions], axis=1).astype(np.float32)
+        return self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() < reach
 
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Closest surface points (N, 3) and their face normals (N, 3), object frame."""
@@ -179,7 +192,7 @@ class GraspPlanner:
         score = (toward_elbow - 1.5 * np.abs(along_view - 0.25)).mean(axis=0)
         score -= 2.0 * np.clip(-along_view - 0.2, 0, None).max(axis=0)  # the palm never faces the camera
         score -= 4.0 * np.clip(-wrist_behind / 0.05, 0, None).max(axis=0)  # nor does the wrist come in front (the forearm would hide all)
-        score = score + self.rng.uniform(0.0, 0.3, len(self.samples))
+        score = score + self.rng.uniform(0.0, 0.3, len(self.samples)) - 5.0 * ~self.open
         for previous in avoid:
             near = np.linalg.norm(self.samples - previous, axis=1) < 0.45 * self.diagonal
             score = score - 3.0 * near
