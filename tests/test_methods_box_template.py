@@ -240,3 +240,19 @@ def test_unknown_template_category_and_options_are_value_errors(tmp_path):
     (tmp_path / "mug.obj").write_text("this is not a mesh\n")
     with pytest.raises(ValueError, match="mug.obj"):
         TemplateMethod(templates=tmp_path).inference(None, depth, mask, "mug", CAMERA)
+
+
+def test_template_fits_a_shallower_wider_bowl(template_method):
+    mesh = builtin_template("bowl")
+    mesh.apply_transform(np.diag([1.1, 0.8, 1.1, 1.0]))  # other proportions than the template's
+    rotation = frame(np.array([0.5, -0.6, -0.6]), np.array([0.0, 0.0, 1.0]))
+    position = np.array([0.02, 0.03, 0.7])
+    depth, mask = render(mesh, rotation, position)
+    prediction = template_method.inference(None, depth, mask, "bowl", CAMERA)
+    assert rotation_error_deg(rotation, quat_to_matrix(prediction.orientation), symmetric=True) < 10.0
+    assert np.linalg.norm(prediction.position - position) < 0.01
+    np.testing.assert_allclose(prediction.extents, mesh.extents, rtol=0.06)
+    # With proportions held, the extents cannot follow: the stretch is what fits them.
+    rigid = TemplateMethod({"stretch": 1.0}).inference(None, depth, mask, "bowl", CAMERA)
+    ratio = rigid.extents[1] / rigid.extents[0]
+    assert ratio == pytest.approx(builtin_template("bowl").extents[1] / builtin_template("bowl").extents[0], rel=1e-9)

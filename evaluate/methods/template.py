@@ -30,8 +30,10 @@ box-centred, metres):
 6. A can hardly shows its top from its bottom, so its y is turned towards the camera's up
    (the upright prior), which costs nothing in fit.
 
-The prediction: the pose of the template's box centre, extents = template extents x scale, and the
-template mesh scaled into the object frame as the reconstruction.
+The ICP also fits the template's proportions (one factor for y, one for x and z, within
+``stretch``): a category's members differ in height against width (a shallow or a deep bowl).
+The prediction: the pose of the template's box centre, extents = template extents x per-axis scale,
+and the template mesh so scaled, in the object frame, as the reconstruction.
 """
 
 from __future__ import annotations
@@ -261,7 +263,8 @@ class TemplateMethod(Method):
     ``symmetric_hypotheses`` (y directions for symmetric categories, 400), ``points`` (observed points
     used for scoring, 300), ``icp_points`` (800), ``refine`` (distinct hypotheses refined briefly, 10), ``separation`` (degrees between them, 15), ``finish`` (of those, refined fully, 3),
     ``icp_iterations`` (25), ``truncation`` (distance cap relative to the template size, 0.1),
-    ``scale_range`` ([0.5, 2.0], allowed scale relative to the template), ``seed`` (0).
+    ``scale_range`` ([0.5, 2.0], allowed scale relative to the template), ``seed`` (0), ``stretch`` (largest change of the template's proportions, y against x and z,
+    1.3; 1 keeps them).
     """
 
     name = "template"
@@ -281,6 +284,7 @@ class TemplateMethod(Method):
         self.truncation = float(config.pop("truncation", 0.1))
         self.scale_range = tuple(float(v) for v in config.pop("scale_range", (0.5, 2.0)))
         self.seed = int(config.pop("seed", 0))
+        self.stretch = float(config.pop("stretch", 1.3))
         if config:
             raise ValueError(f"unknown template method options {sorted(config)}")
         self._sources = self._resolve_sources(sources)
@@ -357,16 +361,16 @@ class TemplateMethod(Method):
         if category in UP_DOWN_AMBIGUOUS and rotation[:, 1] @ np.array([0.0, -1.0, 0.0]) < 0.0:
             rotation = rotation @ np.diag([1.0, -1.0, -1.0])  # turn 180 deg about object x: same box, y up
         reconstruction = template.mesh.copy()
-        reconstruction.apply_scale(scale)
+        reconstruction.apply_transform(np.diag([*scale, 1.0]))
         return Prediction(translation, matrix_to_quat(rotation), template.extents * scale, reconstruction)
 
     def _score_hypotheses(
         self, template, observed, points, rotations, silhouette, depth, camera, fixed=None, samples=None, exact=False
     ):
-        """Per hypothesis: scale (H,), translation (H, 3) and score (H,) (lower is better).
+        """Per hypothesis: per-axis scale (H, 3), translation (H, 3) and score (H,) (lower is better).
 
         Scale and translation come from matching the visible template to the observed points,
-        unless ``fixed`` = (scales (H,), translations (H, 3)) gives them. ``samples`` indexes the
+        unless ``fixed`` = (scales (H, 3), translations (H, 3)) gives them. ``samples`` indexes the
         template samples checked against the image (default: the sparse scoring subset). ``exact``
         takes distances from the KD-tree rather than the distance field (slower, no voxel rounding).
         """
@@ -379,12 +383,12 @@ class TemplateMethod(Method):
         bins = template.view_bin(views_object)
         visible = template.visible[bins][:, samples]  # (H, M)
         if fixed is None:
-            scales = np.clip(observed_rms / template.view_rms[bins], *self.scale_range)
-            translations = centroid - scales[:, None] * np.einsum("hij,hj->hi", rotations, template.view_centroid[bins])
+            scales = np.repeat(np.clip(observed_rms / template.view_rms[bins], *self.scale_range)[:, None], 3, axis=1)
+            translations = centroid - np.einsum("hij,hj->hi", rotations, scales * template.view_centroid[bins])
         else:
             scales, translations = fixed
         # Observed points into each hypothesis' object frame: q = R^T (p - t) / s (row form: (p - t) R).
-        local = np.matmul(points[None, :, :] - translations[:, None, :], rotations) / scales[:, None, None]
+        local = np.matmul(points[None, :, :] - translations[:, None, :], rotations) / scales[:, None, :]
         distance, nearest = template.tree.query(local) if exact else template.lookup(local)
         # Visibility: an observed point must lie on template surface that this view can see.
         unseen = ~template.visible[bins[:, None], nearest]
@@ -408,8 +412,8 @@ class TemplateMethod(Method):
         turns[:, 0, 0], turns[:, 0, 2], turns[:, 1, 1], turns[:, 2, 0], turns[:, 2, 2] = c, s, 1.0, -s, c
         rotations = rotation[None] @ turns
         pivot = template.body_axis_point
-        translations = translation + scale * (rotation @ pivot) - scale * rotations @ pivot
-        fixed = (np.full(len(angles), scale), translations)
+        translations = translation + rotation @ (scale * pivot) - rotations @ (scale * pivot)
+        fixed = (np.broadcast_to(scale, (len(angles), 3)), translations)
         _, _, scores = self._score_hypotheses(template, observed, points, rotations, silhouette, depth, camera, fixed=fixed)
         best = int(np.argmin(scores))
         return scale, rotations[best], translations[best]
@@ -430,16 +434,16 @@ class TemplateMethod(Method):
         view = observed.mean(axis=0)
         view = view / np.linalg.norm(view)
         pivot = template.view_centroid[template.view_bin(rotation.T @ view)]  # object frame
-        translations = translation + scale * (rotation @ pivot) - scale * rotations @ pivot
-        fixed = (np.full(len(grid), scale), translations)
+        translations = translation + rotation @ (scale * pivot) - rotations @ (scale * pivot)
+        fixed = (np.broadcast_to(scale, (len(grid), 3)), translations)
         _, _, scores = self._score_hypotheses(template, observed, points, rotations, silhouette, depth, camera, fixed=fixed)
         best = int(np.argmin(scores))
         return scale, rotations[best], translations[best]
 
     def _pose_score(self, template, observed, points, pose, silhouette, depth, camera) -> float:
-        """The hypothesis score of one pose (scale, rotation (3, 3), translation (3,)), on 4x denser template samples."""
+        """The hypothesis score of one pose (scale (3,), rotation (3, 3), translation (3,)), on 4x denser template samples."""
         scale, rotation, translation = pose
-        fixed = (np.array([scale]), translation[None])
+        fixed = (np.asarray(scale)[None], translation[None])
         dense = np.arange(0, len(template.points), max(1, (template.coarse[1] - template.coarse[0]) // 4))
         scores = self._score_hypotheses(template, observed, points, rotation[None], silhouette, depth, camera, fixed=fixed, samples=dense, exact=True)
         return float(scores[2][0])
@@ -452,7 +456,7 @@ class TemplateMethod(Method):
         disagreement with the observed depth, truncated at ``cap`` m and divided by it (a sample in
         front of or behind the observed surface is where the object is not).
         """
-        cam = scales[:, None, None] * np.matmul(points[None, :, :], np.transpose(rotations, (0, 2, 1))) + translations[:, None, :]
+        cam = np.matmul(scales[:, None, :] * points[None, :, :], np.transpose(rotations, (0, 2, 1))) + translations[:, None, :]
         pixels, z = camera.project(cam)
         u = np.round(pixels[..., 0]).astype(np.intp)
         v = np.round(pixels[..., 1]).astype(np.intp)
@@ -476,19 +480,37 @@ class TemplateMethod(Method):
             cache[view_bin] = (index, cKDTree(template.points[index]))
         return cache[view_bin]
 
-    def _icp(self, template: FittedTemplate, points: np.ndarray, scale: float, rotation: np.ndarray, translation: np.ndarray, iterations: int):
-        """Similarity ICP from a start pose: observed points (N, 3) to the nearest template samples the view can see."""
+    def _icp(self, template: FittedTemplate, points: np.ndarray, scale: np.ndarray, rotation: np.ndarray, translation: np.ndarray, iterations: int):
+        """Similarity ICP from a start pose: observed points (N, 3) to the nearest template samples the view can see.
+
+        ``scale`` (3,) is per object axis: each iteration fits a similarity (Umeyama) to the template
+        stretched by the current proportions, then, with the pose fixed, the proportions themselves by
+        least squares: one factor for y and one shared by x and z (these categories have round
+        bodies), each within 1 / ``stretch`` .. ``stretch`` of the template's.
+        """
         view = points.mean(axis=0)
         view = view / np.linalg.norm(view)
         low, high = self.scale_range
+        scale = np.asarray(scale, dtype=np.float64)
         for _ in range(iterations):
             index, tree = self._visible_tree(template, int(template.view_bin(rotation.T @ view)))
             local = (points - translation) @ rotation / scale
             distance, nearest = tree.query(local)
             keep = distance <= max(3.0 * np.median(distance), 1e-4)
-            new_scale, new_rotation, new_translation = umeyama(template.points[index[nearest[keep]]], points[keep])
-            new_scale = float(np.clip(new_scale, low, high))
-            step = np.linalg.norm(new_translation - translation) + abs(new_scale - scale) * template.extents.max()
+            size = float(np.prod(scale) ** (1.0 / 3.0))
+            proportions = scale / size
+            model = template.points[index[nearest[keep]]]
+            new_size, new_rotation, new_translation = umeyama(model * proportions, points[keep])
+            new_size = float(np.clip(new_size, low, high))
+            if self.stretch > 1.0:
+                q = (points[keep] - new_translation) @ new_rotation / new_size  # object frame, template units
+                horizontal = (q[:, [0, 2]] * model[:, [0, 2]]).sum() / max((model[:, [0, 2]] ** 2).sum(), 1e-12)
+                vertical = (q[:, 1] * model[:, 1]).sum() / max((model[:, 1] ** 2).sum(), 1e-12)
+                proportions = np.array([horizontal, vertical, horizontal])
+                proportions = proportions / np.prod(proportions) ** (1.0 / 3.0)
+                proportions = np.clip(proportions, 1.0 / self.stretch, self.stretch)
+            new_scale = new_size * proportions
+            step = np.linalg.norm(new_translation - translation) + np.abs(new_scale - scale).max() * template.extents.max()
             scale, rotation, translation = new_scale, new_rotation, new_translation
             if step < 5e-5:  # 0.05 mm: converged
                 break
