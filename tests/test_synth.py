@@ -333,3 +333,23 @@ def test_sample_sequence_is_generated_once_atomically(tmp_path, monkeypatch):
     assert truth.category == "mug" and open_sequence(root).ids == truth.ids and len(truth.ids) == 3
     stamp = (root / "truth" / "truth.json").stat().st_mtime_ns
     assert sample.sample_sequence() == root and (root / "truth" / "truth.json").stat().st_mtime_ns == stamp  # reused
+
+
+def test_window_render_equals_full_render():
+    """Frames re-cast only the moving parts' window over a still render: the result must equal a full render."""
+    from sequences.synth.primitives import capsules, quad
+    from sequences.synth.render import projected_window, render
+
+    camera = Camera()
+    projector = np.array([0.075, 0.0, 0.0])
+    still_parts = [quad([0.0, 0.0, 2.0], [3.0, 0.0, 0.0], [0.0, 3.0, 0.0], 4), quad([0.0, 0.3, 1.4], [0.0, 0.0, 0.6], [1.5, 0.0, 0.0], 5)]
+    still = render(still_parts, camera, projector=projector)
+    moving = [capsules(np.array([[-0.05, -0.05, 0.6]]), np.array([[0.08, 0.1, 0.7]]), np.array([0.03]), 1)]
+    window = projected_window(moving, camera, projector=projector)
+    assert (window[1] - window[0]) * (window[3] - window[2]) < 0.5 * camera.width * camera.height
+    fast = render(moving + still_parts, camera, still, window, projector)
+    full = render(moving + still_parts, camera, projector=projector)
+    assert full.shadow.sum() > 500  # the capsule shadows the wall
+    for name in ("depth", "label", "shadow"):
+        assert np.array_equal(getattr(fast, name), getattr(full, name)), name
+    np.testing.assert_allclose(fast.normals, full.normals, atol=1e-6)

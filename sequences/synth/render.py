@@ -80,6 +80,8 @@ def render(parts: list[Part], camera: Camera, base: Render | None = None, window
     if base is None or window is None:
         window = (0, height, 0, width)
     v0, v1, u0, u1 = window
+    if base is not None and (v1 <= v0 or u1 <= u0):  # the moving parts are out of view
+        return Render(*(np.array(getattr(base, name)) for name in ("depth", "label", "points", "normals", "cos_incidence", "shadow")))
     rays, unit = _rays(camera)
     rays = np.ascontiguousarray(rays.reshape(height, width, 6)[v0:v1, u0:u1].reshape(-1, 6))
     unit = unit.reshape(height, width, 3)[v0:v1, u0:u1].reshape(-1, 3)
