@@ -57,6 +57,10 @@ class ModelPanel:
     def __init__(self, app: "App") -> None:
         self.app = app
         self.worker: threading.Thread | None = None
+        self._model_worker: threading.Thread | None = None
+        self._model_dirty = False
+        self._model_running = False
+        self._model_lock = threading.Lock()
         seq = app.sequence
         gui = app.server.gui
         with gui.add_folder("Model and export", expand_by_default=False):
@@ -81,16 +85,43 @@ class ModelPanel:
         if kind == "document" and self.show_model.value:
             self.refresh_model()
 
-    def refresh_model(self) -> None:
-        """Recompute and show (or hide) the accumulated points."""
+    def refresh_model(self, wait: bool = False) -> None:
+        """Recompute and show (or hide) the accumulated points, in a background thread.
+
+        Changes that arrive while it runs are coalesced into one more run (reading up to
+        :data:`MODEL_FRAMES` frames takes a while; edits must not wait for it).
+        """
         app = self.app
         if not self.show_model.value:
             app.scene.show_model(None)
             return
-        with app.state.lock:
-            document = app.state.annotation.copy()
-        points, colors = accumulate_model(app.sequence, document)
-        app.scene.show_model(points, colors)
+        with self._model_lock:
+            self._model_dirty = True
+            if not self._model_running:  # (a flag, not is_alive(): a finishing worker must not swallow this change)
+                self._model_running = True
+                self._model_worker = threading.Thread(target=self._model_loop, daemon=True, name="accumulate")
+                self._model_worker.start()
+            worker = self._model_worker
+        if wait:
+            worker.join()
+
+    def _model_loop(self) -> None:
+        app = self.app
+        while True:
+            with self._model_lock:
+                if not self._model_dirty:
+                    self._model_running = False
+                    return
+                self._model_dirty = False
+            with app.state.lock:
+                document = app.state.annotation.copy()
+            try:
+                points, colors = accumulate_model(app.sequence, document)
+            except Exception as error:  # a bad frame must not end the session
+                app.say(f"Accumulated points failed: {error}")
+                continue
+            if self.show_model.value:
+                app.scene.show_model(points, colors)
 
     def start(self, job, wait: bool = False) -> bool:
         """Run a preview or export job in the worker thread (one at a time)."""

@@ -72,3 +72,24 @@ def test_mesh_preview_and_export_from_the_page(truth, tmp_path):
     finally:
         app.close()
         server.stop()
+
+
+def test_accumulated_points_are_shown_below_the_box(truth, tmp_path):
+    root = tmp_path / "box_seq"
+    shutil.copytree(truth[0], root)
+    seq = open_sequence(root)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = App(server, seq)
+    try:
+        app.commit_box(*truth[1][0])
+        app.model.show_model.value = True
+        app.model.refresh_model(wait=True)
+        shown = np.asarray(app.scene.model.points)
+        expected, _ = accumulate_model(seq, app.state.annotation)
+        np.testing.assert_allclose(shown, expected.astype(np.float32))
+        assert app.scene.model.name.startswith("/box/")  # object frame: it moves with the box
+        app.model.show_model.value = False
+        assert app.scene.model is None
+    finally:
+        app.close()
+        server.stop()
