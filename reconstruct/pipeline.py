@@ -86,6 +86,7 @@ def reconstruct_sequence(
     tol_sigmas: float = carving.DEFAULT_TOL_SIGMAS,
     voxel_margin: float = 1.0,
     silhouette_px: int = 0,
+    carved_share: float = carving.DEFAULT_CARVED_SHARE,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
 ) -> Reconstruction:
@@ -111,10 +112,9 @@ def reconstruct_sequence(
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    counts = result.free_count
+    occupied = result.occupied
     if annotation.symmetry == "y":
-        counts = carving.revolve_free_count(result)
-    occupied = counts <= k_votes
+        occupied = carving.revolve_occupancy(occupied, grid, carved_share)
     timings["symmetry"] = time.perf_counter() - start
     say("mesh", 0, 1)
     start = time.perf_counter()

@@ -71,17 +71,22 @@ def test_carving_a_single_frame_keeps_only_the_shadow():
     assert occupied[:, :, z > 0].all()  # behind the wall: unknown, kept
 
 
-def test_revolve_takes_the_ring_maximum():
+def test_revolve_carves_rings_by_their_carved_share():
     grid = carving.make_grid([0.04, 0.02, 0.04], 0.002, margin=0.0)
-    counts = np.zeros(grid.shape, np.uint16)
-    x = grid.axis_coordinates(0)
-    counts[x > 0.015, :, :] = 5  # only the +x side was ever seen free (beyond radius 15 mm)
-    result = carving.CarveResult(grid, counts, 0, [], 0)
-    revolved = carving.revolve_free_count(result)
     X, Z = np.meshgrid(grid.axis_coordinates(0), grid.axis_coordinates(2), indexing="ij")
     radius = np.hypot(X, Z)
-    assert (revolved[:, 3][radius > 0.0175] == 5).all()  # every side carved as far as the seen side
-    assert (revolved[:, 3][radius < 0.0145] == 0).all()
+    outside = (radius > 0.015)[:, None, :] & np.ones(grid.shape, bool)
+    # the -z side was never seen (nothing carved there); a few noisy voxels carved deep inside
+    occupied = ~(outside & (Z > -0.004)[:, None, :])
+    occupied[10, :, 10] = False
+    revolved = carving.revolve_occupancy(occupied, grid, carved_share=0.5)
+    full_rings = ((radius > 0.0165) & (radius < 0.019))[:, None, :] & np.ones(grid.shape, bool)  # whole rings inside the grid
+    assert not revolved[full_rings].any()  # every side carved as far as the seen sides
+    assert revolved[(radius < 0.0145)[:, None, :] & np.ones(grid.shape, bool)].all()  # the odd voxel is refilled
+    # seen from a quarter only: a share of 0.5 keeps the rings, 0.2 carves them
+    quarter = ~(outside & ((X > 0) & (Z > 0))[:, None, :])
+    assert carving.revolve_occupancy(quarter, grid, 0.5)[full_rings].all()
+    assert not carving.revolve_occupancy(quarter, grid, 0.2)[full_rings].any()
 
 
 # --- meshing -------------------------------------------------------------------------------------
