@@ -353,3 +353,17 @@ def test_window_render_equals_full_render():
     for name in ("depth", "label", "shadow"):
         assert np.array_equal(getattr(fast, name), getattr(full, name)), name
     np.testing.assert_allclose(fast.normals, full.normals, atol=1e-6)
+
+
+def test_other_camera_is_written_to_camera_yaml(tmp_path):
+    camera = Camera(fx=400.0, fy=410.0, cx=199.5, cy=151.0, width=400, height=300)
+    out = generate_sequence(tmp_path / "small", "can", frames=2, seed=5, camera=camera)
+    seq = open_sequence(out)
+    assert seq.camera == camera and seq.depth(0).shape == (300, 400)
+    truth = load_truth(out)
+    frame_id = truth.ids[0]
+    rendered = independent_depth(truth.mesh, truth.poses[frame_id], camera)
+    depth = seq.depth(frame_id).astype(np.float64)
+    on_object = truth.mask(frame_id) & (depth > 0)
+    assert on_object.sum() > 300
+    assert np.median(np.abs(depth[on_object] - rendered[on_object]) / sigma(rendered[on_object])) < 1.5

@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 import trimesh
+import yaml
 from PIL import Image
 
 from ..annotation import default_symmetry
@@ -153,6 +154,8 @@ def generate_sequence(out: str | Path, category: str, frames: int = 100, seed: i
             "grasps": [{"contact": [float(x) for x in g.contact], "first": names[g.first][0], "last": names[g.last][0]} for g in scene.grasps],
         }
         write_truth(tmp, category, default_symmetry(category), obj, poses, notes)
+        if camera != Camera():  # the reader assumes Redwood's camera unless camera.yaml says otherwise
+            (tmp / "camera.yaml").write_text(yaml.safe_dump(camera.to_dict(), sort_keys=False))
         try:
             os.rename(tmp, out)  # onto a missing or empty folder; atomic
         except OSError as error:

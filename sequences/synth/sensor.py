@@ -58,7 +58,7 @@ def depth_measurement(render: Render, rng: np.random.Generator) -> np.ndarray:
     keep = rng.random(z.shape, dtype=np.float32) < keep_chance
     keep &= (z >= MIN_RANGE) & (z <= MAX_RANGE)  # also drops pixels where nothing was hit (z = 0)
     keep &= ~render.shadow
-    field = ndimage.zoom(rng.standard_normal((h // 16, w // 16), dtype=np.float32), 16, order=1)[:h, :w]
+    field = ndimage.zoom(rng.standard_normal(((h + 15) // 16, (w + 15) // 16), dtype=np.float32), 16, order=1)[:h, :w]
     keep &= field < 2.3  # about 1% of the image in smooth-edged blobs
     millimetres = np.clip(np.rint(noisy * np.float32(1000.0)), 0, 65535)
     return np.where(keep, millimetres, 0).astype(np.uint16)
