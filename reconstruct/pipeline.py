@@ -55,7 +55,8 @@ def select_frames(sequence: Sequence, annotation: Annotation, frames: list[str] 
         missing = [f for f in chosen if f not in annotation.frames]
         if missing:
             raise InputError(source, f"frame(s) {', '.join(missing[:5])} have no pose in the annotation")
-        unknown = [f for f in chosen if f not in sequence._index]
+        known = set(sequence.ids)
+        unknown = [f for f in chosen if f not in known]
         if unknown:
             raise InputError(sequence.root, f"frame(s) {', '.join(unknown[:5])} are not in the sequence")
     if not chosen:
