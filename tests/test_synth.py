@@ -292,12 +292,15 @@ def test_procedural_shapes_have_realistic_sizes_and_symmetry(category):
 
 
 def test_motion_is_smooth_and_hand_held():
-    from sequences.synth.motion import object_trajectory
+    from sequences.synth.motion import grasp_schedule, held_frames, object_trajectory
 
-    trajectory = object_trajectory(100, np.random.default_rng(0))
+    held = held_frames(100, grasp_schedule(100))
+    assert 0.6 < held.mean() < 0.95  # regrasps take a few frames
+    trajectory = object_trajectory(100, np.random.default_rng(0), held)
     R = trajectory.rotations
     steps = np.degrees(np.arccos(np.clip((np.einsum("nij,nij->n", R[1:], R[:-1]) - 1) / 2, -1, 1)))
     assert 2.0 < np.median(steps) < 8.0 and steps.max() < 15.0  # a few degrees per frame
+    assert np.median(steps[~held[1:]]) < 0.5 * np.median(steps[held[1:] & held[:-1]])  # slower while not held
     assert np.linalg.norm(np.diff(trajectory.positions, axis=0), axis=1).max() < 0.015
     assert np.all((trajectory.positions[:, 2] > 0.45) & (trajectory.positions[:, 2] < 0.9))
     up = R[:, :, 1]

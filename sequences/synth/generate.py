@@ -24,7 +24,7 @@ from PIL import Image
 from ..annotation import default_symmetry
 from ..camera import Camera
 from ..errors import InputError
-from .motion import Grasp, GraspPlanner, HandState, Trajectory, hand_states, object_trajectory, plan_grasps
+from .motion import Grasp, GraspPlanner, HandState, Trajectory, grasp_schedule, hand_states, held_frames, object_trajectory, plan_grasps
 from .options import GENERATOR_VERSION, check_arguments
 from .png16 import write_png16
 from .primitives import Part, vertex_normals
@@ -75,9 +75,10 @@ class Scene:
 
 def build_scene(obj: trimesh.Trimesh, frames: int, seed: int, camera: Camera) -> Scene:
     """Draw the trajectory, layout, grasps and appearance of a sequence of ``obj`` from ``seed``."""
-    trajectory = object_trajectory(frames, _rng(seed, MOTION))
+    schedule = grasp_schedule(frames)
+    trajectory = object_trajectory(frames, _rng(seed, MOTION), held_frames(frames, schedule))
     layout = make_layout(trajectory.positions.mean(axis=0), _rng(seed, LAYOUT))
-    grasps = plan_grasps(frames, trajectory, GraspPlanner(obj, _rng(seed, GRASPS)), layout.elbow)
+    grasps = plan_grasps(schedule, trajectory, GraspPlanner(obj, _rng(seed, GRASPS)), layout.elbow)
     style = object_style(_rng(seed, STYLE), float(obj.extents[1]))
     vertices, faces = np.asarray(obj.vertices), np.asarray(obj.faces)
     still_parts = [*background_parts(layout), *person_parts(layout)]

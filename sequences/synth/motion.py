@@ -3,8 +3,8 @@
 The object (ShapeNet frame) is carried through all orientations: its y axis starts pointing up
 (camera -y), then alternately to a side (camera +-x, or toward / away from the camera) and down
 (camera +y), with random spins about its own axis, interpolated by a C2 rotation spline (about
-90 degrees per key, one key every ~18 frames: a few degrees per frame). Its centre drifts smoothly
-0.5-0.85 m in front of the camera.
+90 degrees per key, one key every ~22 frames: 5-7 degrees per frame while held, a quarter of
+that while the hand regrasps). Its centre drifts smoothly 0.5-0.85 m in front of the camera.
 
 A hand holds the object by a grasp fixed in the object frame (palm on the surface, fingers wrapped
 on it), releases it, moves around it and grasps elsewhere (at least one regrasp per sequence).
@@ -21,7 +21,7 @@ import trimesh
 from scipy.spatial.transform import Rotation, RotationSpline
 
 #: Frames per 90-degree key of the orientation path (about 5 degrees per frame).
-FRAMES_PER_KEY = 18
+FRAMES_PER_KEY = 22
 #: Frames per grasp before the hand regrasps.
 FRAMES_PER_GRASP = 45
 #: Hand dimensions, metres: palm semi-axes (across, along the fingers, thickness), finger and thumb radii.
@@ -67,8 +67,16 @@ def _align(a: np.ndarray, b: np.ndarray) -> Rotation:
     return Rotation.from_rotvec(axis / s * np.arctan2(s, c))
 
 
-def object_trajectory(frames: int, rng: np.random.Generator) -> Trajectory:
-    """A smooth hand-held trajectory visiting up, down and sideways orientations of the object's y axis."""
+#: How fast the object moves while the hand is off it (regrasping), relative to while it is held.
+RELEASED_SPEED = 0.25
+
+
+def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | None = None) -> Trajectory:
+    """A smooth hand-held trajectory visiting up, down and sideways orientations of the object's y axis.
+
+    ``held`` (frames,) bool: frames where the hand holds the object; in the others (a regrasp) the
+    object drifts at RELEASED_SPEED of its pace instead of turning on its own.
+    """
     keys = max(4, int(round(frames / FRAMES_PER_KEY)))
     up, down = np.array([0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0])
     sides = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, -1.0], [0, 0, 1.0]])
@@ -84,11 +92,15 @@ def object_trajectory(frames: int, rng: np.random.Generator) -> Trajectory:
         target = _unit(target + rng.normal(0, 0.2, 3))
         previous = rotations[-1]
         y_now = previous.apply([0.0, 1.0, 0.0])
-        spin = Rotation.from_rotvec([0.0, rng.uniform(-1.6, 1.6), 0.0])
+        spin = Rotation.from_rotvec([0.0, rng.uniform(-1.0, 1.0), 0.0])
         rotations.append(_align(y_now, target) * previous * spin)
     times = np.linspace(0.0, 1.0, keys + 1)
     times[1:-1] += rng.uniform(-0.25, 0.25, keys - 1) / keys
-    s = np.linspace(0.0, 1.0, frames) if frames > 1 else np.zeros(1)
+    # path parameter per frame: even steps, slowed where the object is not held (smoothed to stay C1)
+    pace = np.ones(frames) if held is None else np.where(held, 1.0, RELEASED_SPEED)
+    pace = np.convolve(np.pad(pace, 2, mode="edge"), np.ones(5) / 5, mode="valid")
+    s = np.concatenate([[0.0], np.cumsum((pace[1:] + pace[:-1]) / 2)]) if frames > 1 else np.zeros(1)
+    s = s / s[-1] if frames > 1 else s
     R = RotationSpline(times, Rotation.concatenate(rotations))(s).as_matrix()
 
     # centre: a base point plus two sinusoids per axis; amplitudes keep it 0.5-0.85 m away and in view
@@ -193,9 +205,9 @@ class GraspPlanner:
         score -= 2.0 * np.clip(-along_view - 0.2, 0, None).max(axis=0)  # the palm never faces the camera
         score -= 4.0 * np.clip(-wrist_behind / 0.05, 0, None).max(axis=0)  # nor does the wrist come in front (the forearm would hide all)
         score = score + self.rng.uniform(0.0, 0.3, len(self.samples)) - 5.0 * ~self.open
-        for previous in avoid:
+        for previous in avoid:  # a regrasp takes the object elsewhere, whatever else the score says
             near = np.linalg.norm(self.samples - previous, axis=1) < 0.45 * self.diagonal
-            score = score - 3.0 * near
+            score = score - 20.0 * near
         pick = int(np.argmax(score))
         contact, normal, fingers = self.samples[pick], normals[pick], fingers[pick]
         across = np.cross(fingers, normal)
@@ -260,22 +272,38 @@ def _interpolate(A: np.ndarray, B: np.ndarray, u: float) -> np.ndarray:
     return T
 
 
-def plan_grasps(frames: int, trajectory: Trajectory, planner: GraspPlanner, elbow: np.ndarray) -> list[Grasp]:
-    """Grasps over the sequence: one per ~FRAMES_PER_GRASP frames, at least two (one regrasp).
+def grasp_schedule(frames: int) -> list[tuple[int, int]]:
+    """The frames (first, last) of each grasp: one per ~FRAMES_PER_GRASP frames, at least two (one regrasp).
 
-    Between grasps a window of frames (15% of a grasp period, at least one frame) has the hand
-    releasing, moving and re-approaching.
+    Between grasps a window of frames (30% of a grasp period, at least one frame; about 0.3-0.5 s)
+    has the hand releasing, moving and re-approaching.
     """
     count = max(2, 1 + frames // FRAMES_PER_GRASP)
-    window = max(1, int(round(0.15 * frames / count)))
+    window = max(1, int(round(0.3 * frames / count)))
     edges = np.linspace(0, frames, count + 1)
-    grasps: list[Grasp] = []
+    schedule = []
     for k in range(count):
         first = 0 if k == 0 else int(round(edges[k])) + window // 2 + window % 2
         last = frames - 1 if k == count - 1 else int(round(edges[k + 1])) - window // 2 - 1
         first, last = min(first, frames - 1), max(min(last, frames - 1), min(first, frames - 1))
+        schedule.append((first, last))
+    return schedule
+
+
+def held_frames(frames: int, schedule: list[tuple[int, int]]) -> np.ndarray:
+    """(frames,) bool: whether the hand holds the object in each frame."""
+    held = np.zeros(frames, dtype=bool)
+    for first, last in schedule:  # a few grasps
+        held[first : last + 1] = True
+    return held
+
+
+def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner: GraspPlanner, elbow: np.ndarray) -> list[Grasp]:
+    """A grasp for each (first, last) frame range of ``schedule``, each elsewhere than the one before."""
+    grasps: list[Grasp] = []
+    for first, last in schedule:
         held = slice(first, last + 1)
-        grasps.append(planner.plan(trajectory.rotations[held], trajectory.positions[held], elbow, [g.contact for g in grasps], first, last))
+        grasps.append(planner.plan(trajectory.rotations[held], trajectory.positions[held], elbow, [g.contact for g in grasps[-1:]], first, last))
     return grasps
 
 
