@@ -116,7 +116,8 @@ def test_annotate_in_headless_chromium(server, tmp_path):
             size = {"width": 1200, "height": 760} if keep else {"width": 900, "height": 600}
             page = browser.new_page(viewport=size)
             page.set_default_timeout(180_000)
-            page.goto(url)
+            # viser's fixedDpr: half resolution for the software renderer, full for a picture
+            page.goto(url if keep else url + "/?fixedDpr=0.5")
             page.wait_for_selector("canvas", timeout=120_000)
             page.get_by_text("frame 1/", exact=False).first.wait_for(timeout=120_000)
             time.sleep(1.0)  # let the point cloud and the images arrive and render
@@ -134,7 +135,7 @@ def test_annotate_in_headless_chromium(server, tmp_path):
             # a second tab on the same server sees the same session
             other = browser.new_page(viewport={"width": 480, "height": 360})  # small: software WebGL is slow
             other.set_default_timeout(180_000)
-            other.goto(url)
+            other.goto(url + "/?fixedDpr=0.5")
             other.get_by_text("frame 1/", exact=False).first.wait_for(timeout=120_000)
 
             page.get_by_role("button", name="Next frame").first.click()
