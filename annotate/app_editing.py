@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from evaluate.geometry import quat_to_matrix
 from sequences.annotation import CATEGORIES, SYMMETRIES, default_symmetry
 from sequences.pointcloud import frame_points
 
@@ -159,7 +160,7 @@ class EditingPanel:
             with app.state.lock:
                 document = app.state.annotation.copy()
             model, _ = accumulate_model(app.sequence, document)
-            R = box_edits._rotation(orientation)
+            R = quat_to_matrix(orientation)
             points = np.vstack([cloud.points, model @ R.T + position])
             try:
                 up = estimate_axis(points, position, orientation, extents)
