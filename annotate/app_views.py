@@ -72,12 +72,24 @@ def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, 
     return np.asarray(Image.alpha_composite(base, overlay).convert("RGB"))
 
 
+#: When several frames share a pixel column, the one that most needs attention is shown.
+STATUS_PRIORITY = ("manual", "refined", "tracked", "none", "flagged")
+
+
 def timeline_image(statuses: list[str], current: int, width: int = 600, height: int = 28) -> np.ndarray:
-    """A strip (height, width, 3) uint8: one coloured cell per frame by status, the current frame marked."""
+    """A strip (height, width, 3) uint8: one coloured cell per frame by status, the current frame marked.
+
+    With more frames than pixel columns, a column shows the most urgent status of its frames
+    (a flagged frame is never hidden).
+    """
     n = max(len(statuses), 1)
-    colors = np.array([STATUS_COLORS[s] for s in statuses] or [STATUS_COLORS["none"]], dtype=np.uint8)
-    column = np.minimum((np.arange(width) * n) // width, n - 1)  # frame shown in each pixel column
-    strip = np.repeat(colors[column][None, :, :], height, axis=0)
+    rank = np.array([STATUS_PRIORITY.index(s) for s in statuses] or [STATUS_PRIORITY.index("none")])
+    palette = np.array([STATUS_COLORS[s] for s in STATUS_PRIORITY], dtype=np.uint8)
+    first = np.minimum((np.arange(width) * n) // width, n - 1)  # first frame of each pixel column
+    # most urgent rank over each column's frames [first[c], first[c + 1]); a repeated index (fewer
+    # frames than columns) gives that frame's own rank
+    column_rank = np.maximum.reduceat(rank, first)
+    strip = np.repeat(palette[column_rank][None, :, :], height, axis=0)
     lo = (current * width) // n
     hi = max(((current + 1) * width) // n, lo + 2)
     strip[: height // 4, lo:hi] = 255  # white marks above and below the current frame

@@ -272,3 +272,33 @@ def test_snap_upright_puts_the_box_axis_on_a_cylinder_axis(tmp_path):
     finally:
         app.close()
         server.stop()
+
+
+def test_timeline_never_hides_a_flagged_frame():
+    statuses = ["tracked"] * 2000
+    statuses[1234] = "flagged"
+    statuses[5] = "none"
+    strip = timeline_image(statuses, current=0, width=600, height=20)
+    row = strip[10]
+    flagged_columns = np.flatnonzero(np.all(row == STATUS_COLORS["flagged"], axis=1))
+    assert flagged_columns.tolist() == [1234 * 600 // 2000]
+    assert np.all(row[1] == STATUS_COLORS["none"])
+    # everything else is tracked (an independent per-column loop gives the same strip)
+    order = ["manual", "refined", "tracked", "none", "flagged"]
+    for c in range(600):
+        frames = range(c * 2000 // 600, max((c + 1) * 2000 // 600, c * 2000 // 600 + 1))  # [first, next first)
+        worst = max((statuses[f] for f in frames), key=order.index)
+        assert tuple(row[c]) == STATUS_COLORS[worst]
+
+
+@pytest.mark.parametrize("n", [3, 599, 600, 601, 1999])
+def test_timeline_columns_match_a_per_column_loop(n):
+    rng = np.random.default_rng(n)
+    order = ["manual", "refined", "tracked", "none", "flagged"]
+    statuses = [order[i] for i in rng.choice(5, size=n, p=[0.3, 0.2, 0.4, 0.08, 0.02])]
+    row = timeline_image(statuses, current=n - 1, width=600, height=20)[10]
+    for c in range(600):
+        lo = min(c * n // 600, n - 1)
+        hi = max(min((c + 1) * n // 600, n), lo + 1)
+        worst = max(statuses[lo:hi], key=order.index)
+        assert tuple(row[c]) == STATUS_COLORS[worst], c
