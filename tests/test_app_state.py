@@ -178,3 +178,37 @@ def test_a_failed_save_keeps_the_previous_file_and_session(seq, monkeypatch):
     monkeypatch.undo()
     assert state.undo()
     np.testing.assert_allclose(load_annotation(state.path).extents, [DEFAULT_BOX_SIZE] * 3)
+
+
+def test_a_kill_during_saves_leaves_a_valid_document_and_backup(seq):
+    """SIGKILL a process that saves as fast as it can: the document and its backup both load."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    script = (
+        "import sys, numpy as np\n"
+        "from annotate.app_state import AppState\n"
+        "from sequences.reader import open_sequence\n"
+        "state = AppState(open_sequence(sys.argv[1]))\n"
+        "k = 0\n"
+        "while True:\n"
+        "    k += 1\n"
+        "    state.set_pose([0.001 * k, 0.0, 0.7], [0, 0, 0, 1])\n"
+        "    if k == 5: print('saving', flush=True)\n"
+    )
+    repo = Path(__file__).resolve().parents[1]
+    process = subprocess.Popen([sys.executable, "-c", script, str(seq.root)], cwd=repo, stdout=subprocess.PIPE, text=True)
+    try:
+        assert process.stdout.readline().strip() == "saving"
+        time.sleep(0.5)
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+    path = seq.root / "annotation.yaml"
+    document = load_annotation(path)
+    backup = load_annotation(path.with_name(path.name + ".bak"))
+    x, x_backup = document.frames["0000001"].position[0], backup.frames["0000001"].position[0]
+    assert x >= 0.005 and x_backup >= 0.004 and x_backup <= x
