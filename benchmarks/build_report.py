@@ -192,10 +192,54 @@ def build_sequence(category: str, seed: int, args, work: Path) -> dict:
     }
 
 
-def run_evaluate(dataset: Path, frames: Path, out: Path, quiet: bool) -> dict:
+def write_predictions(work: Path, quality: list[dict]) -> dict[str, Path]:
+    """Run the methods here on the selected frames with the TRUE masks; one predictions file per method.
+
+    Scored against both ground truths (``evaluate --method NAME=FILE``), the very same predictions
+    show what the ground truth alone changes.
+    """
+    from evaluate.methods.box import BoxMethod
+    from evaluate.methods.template import TemplateMethod
+
+    methods = {"box": BoxMethod(), "template": TemplateMethod()}
+    folder = work / "predictions"
+    if folder.exists():
+        shutil.rmtree(folder)
+    lines: dict[str, list[str]] = {name: [] for name in methods}
+    for q in quality:
+        root = work / "sequences" / q["sequence"]
+        sequence, truth = open_sequence(root), load_truth(root)
+        for frame in q["selected"]:
+            index = sequence.index(frame)
+            color, depth, mask = sequence.color(index), sequence.depth(index), truth.mask(frame)
+            for name, method in methods.items():
+                try:
+                    prediction = method.inference(color, depth, mask, q["category"], sequence.camera)
+                except ValueError:
+                    continue  # no line: the sample counts as failed, as in a run here
+                shape = folder / name / f"{q['sequence']}_{frame}"
+                shape.parent.mkdir(parents=True, exist_ok=True)
+                if isinstance(prediction.reconstruction, np.ndarray):
+                    shape = shape.with_suffix(".npy")
+                    np.save(shape, prediction.reconstruction)
+                else:
+                    shape = shape.with_suffix(".obj")
+                    prediction.reconstruction.export(shape)
+                lines[name].append(json.dumps({
+                    "sequence": q["sequence"], "frame": frame, "position": prediction.position.tolist(),
+                    "orientation": prediction.orientation.tolist(), "extents": prediction.extents.tolist(),
+                    "reconstruction": str(shape.relative_to(folder)),
+                }))
+    paths = {}
+    for name, content in lines.items():
+        paths[name] = write_text_atomic(folder / f"{name}.jsonl", "\n".join(content) + "\n")
+    return paths
+
+
+def run_evaluate(dataset: Path, frames: Path, out: Path, quiet: bool, methods=METHODS) -> dict:
     """Run the ``evaluate`` command on one dataset; returns its results.json."""
     command = [sys.executable, "-c", "from evaluate.cli import entry; entry()", "--dataset", str(dataset), "--frames", str(frames), "--out", str(out)]
-    for method in METHODS:
+    for method in methods:
         command += ["--method", method]
     if quiet:
         command.append("--quiet")
@@ -252,6 +296,51 @@ def table3(results: dict[str, dict], categories: list[str]) -> str:
             precision = results[d]["methods"][method]["precision"]
             cells = [_pct(precision[k]["per_category"].get(c)) for c in categories for k in range(len(thresholds))]
             lines.append(f"| {method} | {d} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _errors(path: Path) -> dict[tuple[str, str, str], dict]:
+    import csv
+
+    with open(path, newline="") as handle:
+        return {(row["method"], row["sequence"], row["frame"]): row for row in csv.DictReader(handle)}
+
+
+def _meets(row: dict, threshold: dict) -> bool:
+    """Whether one sample's errors (an errors.csv row) meet a threshold tuple of results.json."""
+    if row.get("failure"):
+        return False
+    checks = [("translation", "position", lambda e, t: e <= t), ("rotation", "degrees", lambda e, t: e <= t),
+              ("iou", "iou", lambda e, t: e >= t), ("fscore", "fscore", lambda e, t: e >= t)]
+    for column, key, test in checks:
+        if threshold.get(key) is not None:
+            value = float(row[column]) if row.get(column) not in (None, "") else float("nan")
+            if not (value == value and test(value, threshold[key])):
+                return False
+    return True
+
+
+def same_predictions_table(out: Path) -> str:
+    """Table 2 layout for the identical predictions scored against both ground truths."""
+    same = {label: json.loads((out / "same_predictions" / label / "results.json").read_text()) for label in ("toolkit", "truth")}
+    return table2(same)
+
+
+def verdict_table(out: Path, results: dict[str, dict]) -> str:
+    """Per method and threshold: samples whose verdict differs between the two ground truths, and the error shifts."""
+    same = out / "same_predictions"
+    toolkit, truth = _errors(same / "toolkit" / "errors.csv"), _errors(same / "truth" / "errors.csv")
+    lines = ["| Method | Threshold | Correct on both | Only on truth | Only on toolkit GT | Median abs. change of position error (mm) / rotation error (°) |",
+             "|---|---|---|---|---|---|"]
+    for method, entry in results["truth"]["methods"].items():
+        keys = [k for k in truth if k[0] == method and k in toolkit]
+        shift_m = np.median([abs(float(truth[k]["translation"]) - float(toolkit[k]["translation"])) for k in keys])
+        shift_deg = np.median([abs(float(truth[k]["rotation"]) - float(toolkit[k]["rotation"])) for k in keys])
+        for threshold in entry["precision"]:
+            on_truth = {k for k in keys if _meets(truth[k], threshold)}
+            on_toolkit = {k for k in keys if _meets(toolkit[k], threshold)}
+            lines.append(f"| {method} | {_threshold_label(threshold)} | {len(on_truth & on_toolkit)} | {len(on_truth - on_toolkit)} | "
+                         f"{len(on_toolkit - on_truth)} | {1000 * shift_m:.1f} / {shift_deg:.1f} |")
     return "\n".join(lines)
 
 
@@ -327,6 +416,18 @@ Rotation errors of bottle, bowl and can are the angle between the y axes (their 
 is not defined); mesh chamfer is the mean of both one-sided mean distances between the toolkit's
 mesh and the true mesh in their own object frames.
 
+What that changes in the scores: the methods' predictions on the true masks (`predictions/*.jsonl`
+in the work folder), identical for both, scored against each ground truth (`same_predictions/`):
+
+{same_predictions_table(out)}
+
+Sample by sample:
+
+{verdict_table(out, results)}
+
+(The tables above run each method on each dataset with that dataset's own masks, the toolkit's
+rendered from its reconstruction, as a user of the toolkit would; there the inputs differ too.)
+
 ## Reading
 
 {reading}"""
@@ -346,8 +447,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--manual-extents", type=float, default=0.05, help="largest relative extents error of a placed box (default 0.05)")
     parser.add_argument("--voxel-size", type=float, default=0.002, help="carving voxel, metres (default 0.002)")
     parser.add_argument("--fresh", action="store_true", help="delete WORK first (otherwise generated sequences are reused)")
+    parser.add_argument("--readme-only", action="store_true", help="only rewrite OUT/README.md from the results already in OUT (e.g. after editing reading.md)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    if args.readme_only:
+        quality = json.loads((args.out / "ground_truth_quality.json").read_text())
+        results = {label: json.loads((args.out / label / "results.json").read_text()) for label in ("toolkit", "truth")}
+        args.seeds = [dict(zip(CATEGORIES, args.seeds))[c] for c in args.categories]
+        build = json.loads((args.out / "build.json").read_text())
+        write_readme(args.out, results, quality, args, float(build["seconds"]))
+        print(f"wrote {args.out / 'README.md'}")
+        return 0
 
     started = time.perf_counter()
     work, out = args.work, args.out
@@ -371,8 +481,16 @@ def main(argv: list[str] | None = None) -> int:
     for label in ("toolkit", "truth"):
         print(f"[{time.perf_counter() - started:6.0f} s] evaluate on the {label} ground truth", flush=True)
         results[label] = run_evaluate(work / f"dataset_{label}", work / "sequences", out / label, args.quiet)
+    print(f"[{time.perf_counter() - started:6.0f} s] the same predictions (true masks) scored against both ground truths", flush=True)
+    predictions = write_predictions(work, quality)
+    specs = [f"{name}={path}" for name, path in predictions.items()]
+    for label in ("toolkit", "truth"):
+        run_evaluate(work / f"dataset_{label}", work / "sequences", out / "same_predictions" / label, args.quiet, specs)
     args.seeds = [seeds[c] for c in args.categories]
-    write_readme(out, results, quality, args, time.perf_counter() - started)
+    seconds = time.perf_counter() - started
+    options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    write_text_atomic(out / "build.json", json.dumps({"seconds": round(seconds, 1), "options": options}, indent=1) + "\n")
+    write_readme(out, results, quality, args, seconds)
     print(f"[{time.perf_counter() - started:6.0f} s] wrote {out / 'README.md'}")
     return 0
 
