@@ -23,19 +23,26 @@ from scipy import ndimage
 from sequences.camera import Camera
 
 #: A voxel is carved when seen free in more than k frames, k = max(DEFAULT_MIN_FREE,
-#: floor(DEFAULT_FREE_FRACTION * frames)): 1 up to 99 frames, 2 for 100-149, ... Measured with tol_sigmas = 2:
-#: (a) a 100-frame 640x480 open cup (8 x 10 cm, 6 mm walls) with depth noise and a moving "hand":
+#: floor(DEFAULT_FREE_FRACTION * frames)), and (the veto) in at least DEFAULT_VETO times as many
+#: frames as saw it just behind the measured surface. Measured with tol_sigmas = 2:
+#: (a) a 100-frame 640x480 open cup (8 x 10 cm, 6 mm walls) with depth noise and a moving "hand",
+#:     without the veto:
 #:   true poses      k=0: F@5mm 1.000, volume x1.00 | k=1: 0.995, x1.13 | k=2: 0.965, x1.24 | k=4: 0.881, x1.65
 #:   1 deg / 2 mm    k=0: F@5mm 0.994, extents -3 mm | k=1: 0.988, -2 mm | k=2: 0.949, -1.5 mm | k=4: 0.886, -0.5 mm
+#:   with veto 0.5, k=1: true F@5mm 0.995, extents +2.0 mm; 1 deg / 2 mm: 0.994, +0.5 mm
 #: (b) benchmarks/bench_reconstruct.py, synthetic bottle/bowl/mug/can, 100 frames, seed 2, worst
-#:   extents error over categories: k=1: true -3.7 mm, 1 deg / 2 mm -8.5 mm (ring maximum for
-#:   symmetric objects) | k=2 (ring share 0.5): true +2.5 mm, 1 deg / 2 mm -3.6 mm; F@5mm >= 0.91.
-#: Higher k fills cavities seen from few frames (a mug's inside); lower k lets a few frames with
-#: bad poses eat the object (and shrink its box). k = 2 is the best compromise measured at 100
-#: frames; the 30-40 frame scenes of tests/test_reconstruct.py need k = 1 (fewer views per voxel).
+#:     extents error over the four categories, true poses / every pose off by 1 deg and 2 mm:
+#:   k=1, no veto (ring maximum for symmetric objects): -3.7 mm / -8.5 mm
+#:   k=2, no veto (ring share 0.5): +2.5 mm / -3.8 mm
+#:   k=1, veto 0.5: +2.8 mm / +2.5 mm (k=0 alike; veto 1.0 keeps hand remnants: +16 mm on the mug)
+#: Without the veto a few frames with bad poses eat the object (they see its rim free); the veto
+#: counts the frames that see those voxels inside and keeps them. Higher k fills cavities seen
+#: from few frames (a mug's inside).
 DEFAULT_MIN_FREE = 1
 #: Fraction of the frames that must see a voxel free before it is carved, on long sequences.
-DEFAULT_FREE_FRACTION = 0.02
+DEFAULT_FREE_FRACTION = 0.01
+#: Free votes needed per "just behind the surface" vote (see above).
+DEFAULT_VETO = 0.5
 #: Noise tolerance in depth standard deviations (plus half a voxel diagonal); measured with k above
 #: (3 sigma fattens flat faces seen head-on by ~1 mm more with no gain under pose errors).
 DEFAULT_TOL_SIGMAS = 2.0
@@ -103,11 +110,20 @@ class CarveResult:
     k: int
     frames: list[str]
     projections: int  # voxel projections done (speed figure)
+    behind_count: np.ndarray | None = None  # (nx, ny, nz) uint16: frames that saw the voxel just behind the surface
+    veto: float | None = None
 
     @property
     def occupied(self) -> np.ndarray:
-        """(nx, ny, nz) bool: voxels not carved (seen free in at most ``k`` frames)."""
-        return self.free_count <= self.k
+        """(nx, ny, nz) bool: voxels not carved.
+
+        Carved: seen free in more than ``k`` frames and, with ``veto``, in at least ``veto`` times
+        as many frames as saw it just behind the measured surface (inside the object).
+        """
+        carved = self.free_count > self.k
+        if self.veto is not None and self.behind_count is not None:
+            carved &= self.free_count >= self.veto * self.behind_count
+        return ~carved
 
 
 def carve(
@@ -119,12 +135,19 @@ def carve(
     voxel_margin: float = 1.0,
     silhouette_px: int = 0,
     progress: Callable[[int], None] | None = None,
+    veto: float | None = DEFAULT_VETO,
+    settle: int = 10,
 ) -> CarveResult:
     """Count free-space votes per voxel.
 
     ``frames`` yields (frame id, depth (H, W) float32 metres with 0 = none, pose 4x4 object to
     camera). Only voxels not carved yet are projected in each frame (a shrinking active set), in
     float32: the projection errors (~1e-7 relative) are far below a pixel.
+
+    With ``veto`` (a ratio), frames that see a voxel just behind the measured surface (0 to one
+    tolerance deep: evidence it is inside the object) are counted too, and a voxel is carved only
+    when its free votes are at least ``veto`` times those; voxels then leave the active set once
+    seen free in more than ``max(k, settle)`` frames.
     """
     points = np.ascontiguousarray(grid.centres(np.float32).T)  # (3, N): rows contiguous for the product
     count = np.zeros(grid.size, dtype=np.uint16)
@@ -136,6 +159,12 @@ def carve(
     # and missing depth compare as "never free" without per-voxel bounds tests
     threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
     flat_threshold = threshold.reshape(-1)
+    behind = np.zeros(grid.size, dtype=np.uint16) if veto is not None else None
+    drop = k if veto is None else max(k, settle)
+    if veto is not None:
+        near = np.full((height + 2, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
+        far = np.full((height + 2, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
+        flat_near, flat_far = near.reshape(-1), far.reshape(-1)
     ids: list[str] = []
     projections = 0
     for done, (frame_id, depth, pose) in enumerate(frames, start=1):
@@ -147,7 +176,12 @@ def carve(
             depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
         # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
         inner = depth - (np.float32(tol_sigmas) * depth_sigma(depth) + half_diagonal)
-        inner[depth <= 0] = -1.0
+        missing = depth <= 0
+        if veto is not None:
+            band = inner  # d - tol
+            near[1:-1, 1:-1] = np.where(missing, np.inf, depth)
+            far[1:-1, 1:-1] = np.where(missing, -1.0, 2 * depth - band)  # d + tol
+        inner[missing] = -1.0
         threshold[1:-1, 1:-1] = inner
         # [u z, v z, z] = K (R p + t): one (3, 3) x (3, N) product per frame
         M = (K @ np.asarray(pose, dtype=np.float64)[:3, :]).astype(np.float32)
@@ -155,10 +189,10 @@ def carve(
         q += M[:, 3:4]
         z = q[2]
         projections += z.size
-        behind = None
+        behind_camera = None
         if z.size and z.min() <= 1e-3:  # the camera is inside the grid: those voxels are unknown
-            behind = z <= 1e-3
-            z = np.where(behind, np.float32(1.0), z)
+            behind_camera = z <= 1e-3
+            z = np.where(behind_camera, np.float32(1.0), z)
         inverse = np.reciprocal(z)
         # padded pixel index floor(u + 0.5) + 1, clipped onto the border for points off the image
         u = q[0] * inverse
@@ -171,19 +205,24 @@ def carve(
         pixel *= width + 2
         pixel += u.astype(np.int32)
         free = flat_threshold[pixel] > z
+        if behind_camera is not None:
+            free &= ~behind_camera
         if behind is not None:
-            free &= ~behind
+            inside = (z >= flat_near[pixel]) & (z <= flat_far[pixel])
+            if behind_camera is not None:
+                inside &= ~behind_camera
+            behind[active[inside]] += 1
         hits = np.flatnonzero(free)
         if progress is not None:
             progress(done)
         if hits.size:
             newly = active[hits]
             count[newly] += 1
-            if (count[newly] > k).any():  # drop carved voxels from the active set
-                keep = count[active] <= k
+            if (count[newly] > drop).any():  # drop carved voxels from the active set
+                keep = count[active] <= drop
                 active = active[keep]
                 points = np.ascontiguousarray(points[:, keep])
-    return CarveResult(grid, count.reshape(grid.shape), k, ids, projections)
+    return CarveResult(grid, count.reshape(grid.shape), k, ids, projections, None if behind is None else behind.reshape(grid.shape), veto)
 
 
 def revolve_occupancy(occupied: np.ndarray, grid: VoxelGrid, carved_share: float = DEFAULT_CARVED_SHARE) -> np.ndarray:
