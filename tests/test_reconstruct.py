@@ -71,6 +71,26 @@ def test_carving_a_single_frame_keeps_only_the_shadow():
     assert occupied[:, :, z > 0].all()  # behind the wall: unknown, kept
 
 
+def test_veto_keeps_voxels_that_other_frames_see_inside():
+    # one frame sees past everything (a pose error, say); three see a surface at 0.998 m
+    camera = Camera(fx=100, fy=100, cx=49.5, cy=49.5, width=100, height=100)
+    grid = carving.make_grid([0.02, 0.02, 0.02], 0.002, margin=0.0)
+    pose = np.eye(4)
+    pose[2, 3] = 1.0
+    far = np.full((100, 100), 1.5, np.float32)
+    surface = np.full((100, 100), 0.998, np.float32)
+    frames = [("a", far, pose)] + [(f"b{i}", surface, pose) for i in range(3)]
+    z = grid.axis_coordinates(2) + 1.0  # camera depth of each z layer
+    vetoed = carving.carve(grid, frames, camera, k=0, veto=0.5).occupied
+    plain = carving.carve(grid, frames, camera, k=0, veto=None).occupied
+    # kept: the layers 0 .. tol (5.5 mm) behind the surface, seen there 3 times and free once
+    expected = (z >= 0.998) & (z <= 0.998 + 2 * carving.depth_sigma(0.998) + np.sqrt(3) * 0.001)
+    assert expected.sum() == 3
+    np.testing.assert_array_equal(vetoed.all(axis=(0, 1)), expected)
+    np.testing.assert_array_equal(vetoed.any(axis=(0, 1)), expected)
+    assert not plain.any()
+
+
 def test_revolve_carves_rings_by_their_carved_share():
     grid = carving.make_grid([0.04, 0.02, 0.04], 0.002, margin=0.0)
     X, Z = np.meshgrid(grid.axis_coordinates(0), grid.axis_coordinates(2), indexing="ij")
