@@ -12,7 +12,8 @@ class TrackingConfig:
     """All lengths in metres, angles in degrees."""
 
     backend: str = "point_to_plane"  #: one of registration.BACKENDS (chosen by benchmarks/bench_tracking.py)
-    voxel_size: float = 0.003  #: model and frame downsampling
+    voxel_size: float = 0.004  #: model and frame downsampling (at least; large objects use max extent / voxels_across)
+    voxels_across: int = 60  #: a large object gets a coarser voxel so its point count (and time) stays bounded
     stride: int = 2  #: pixel subsampling when reading a frame's points
     crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
     extents_slack: float = 0.08  #: the box is grown by this share too (hand-placed extents are off by up to ~8%)
@@ -38,3 +39,11 @@ class TrackingConfig:
             raise ValueError(f"unknown registration backend {self.backend!r}; one of {', '.join(BACKENDS)}")
         if not self.voxel_size > 0:
             raise ValueError("voxel_size must be positive")
+
+
+def scaled_to(config: TrackingConfig, extents) -> TrackingConfig:
+    """The configuration with its voxel size grown for a large object (max extent / ``voxels_across``)."""
+    from dataclasses import replace
+
+    voxel = max(config.voxel_size, float(max(extents)) / config.voxels_across)
+    return replace(config, voxel_size=voxel) if voxel != config.voxel_size else config

@@ -21,7 +21,7 @@ import numpy as np
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
-from .config import TrackingConfig
+from .config import TrackingConfig, scaled_to
 from .frames import FrameStore
 from .propagate import run_chain
 from .quality import flag_reasons, in_box_share, pose_difference, rounded
@@ -91,7 +91,7 @@ def track_sequence(
     plus ``flag_reason`` where a figure is beyond the configured thresholds. Raises ValueError when
     the range holds no posed frame.
     """
-    config = config or TrackingConfig()
+    config = scaled_to(config or TrackingConfig(), annotation.extents)
     ids = _ordered_range(sequence, frames)
     anchors = _anchors(annotation, ids)
     if not anchors:
@@ -177,7 +177,7 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
     FramePose with ``source: refined`` and quality figures (and a flag) in ``extra``. Raises
     ValueError when the document has no pose to start from.
     """
-    config = config or TrackingConfig()
+    config = scaled_to(config or TrackingConfig(), annotation.extents)
     frame_id = str(frame_id)
     ids = sequence.ids
     if frame_id not in ids:

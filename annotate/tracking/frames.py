@@ -6,60 +6,69 @@ import numpy as np
 import open3d as o3d
 
 from sequences.errors import InputError
-from sequences.pointcloud import frame_points
 from sequences.reader import Sequence
 
 
-def _backproject_strided(camera, depth: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray]:
-    """Back-project a depth image subsampled by ``stride`` (pixel (i, j) is full-resolution (stride i, stride j))."""
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0))
-    z = depth[v, u].astype(np.float64)
-    points = np.stack([(u * stride - camera.cx) / camera.fx * z, (v * stride - camera.cy) / camera.fy * z, z], axis=1)
-    return points, v * stride * camera.width + u * stride
-
-
 class FrameStore:
-    """Caches each frame's back-projected points (camera frame, m) and colours (0..1), subsampled by ``stride``."""
+    """Caches each frame's depth (subsampled by ``stride``, metres) and colours; crops them by a box.
+
+    A crop back-projects only the pixels inside the box's projected outline (its image rectangle),
+    not the whole frame: a 10 cm object covers a few percent of the image.
+    """
 
     def __init__(self, sequence: Sequence, stride: int = 2, cache: bool = True, colors: bool = True) -> None:
         self.sequence = sequence
         self.colors = colors
         self.stride = int(stride)
         self.cache = cache
-        self._frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._frames: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         self.errors: dict[str, str] = {}
 
-    def raw(self, frame_id: str) -> tuple[np.ndarray, np.ndarray]:
-        """All valid points (N, 3) float32 and colours (N, 3) float32 of a frame; empty when it cannot be read."""
+    def image(self, frame_id: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """Subsampled depth (h, w) float32 metres (0 = none) and colours (h, w, 3) float32 0..1 or None."""
         if frame_id in self._frames:
             return self._frames[frame_id]
+        s = self.stride
         try:
-            if self.colors:
-                cloud = frame_points(self.sequence, frame_id, stride=self.stride)
-                out = (cloud.points.astype(np.float32), cloud.colors.astype(np.float32) / 255.0)
-            else:  # geometry only: decoding the colour image would cost a third of the read
-                depth = self.sequence.depth(frame_id)[:: self.stride, :: self.stride]
-                points, _ = _backproject_strided(self.sequence.camera, depth, self.stride)
-                out = (points.astype(np.float32), np.zeros((len(points), 3), np.float32))
+            depth = np.ascontiguousarray(self.sequence.depth(frame_id)[::s, ::s])
+            color = np.ascontiguousarray(self.sequence.color(frame_id)[::s, ::s]).astype(np.float32) / 255.0 if self.colors else None
         except InputError as error:  # a corrupt or empty frame: no points, the frame gets flagged
             self.errors[frame_id] = str(error)
-            out = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+            camera = self.sequence.camera
+            depth = np.zeros(((camera.height + s - 1) // s, (camera.width + s - 1) // s), np.float32)
+            color = None
+        out = (depth, color)
         if self.cache:
             self._frames[frame_id] = out
         return out
 
     def crop(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Points and colours of a frame inside the box at ``pose`` (4x4 object to camera) grown by ``margin`` (m).
-
-        Voxel-downsampled to ``voxel`` when given.
-        """
-        points, colors = self.raw(frame_id)
-        if len(points) == 0:
-            return points.astype(np.float64), colors.astype(np.float64)
-        R, t = pose[:3, :3], pose[:3, 3]
-        local = (points - t) @ R
-        keep = np.all(np.abs(local) <= np.asarray(extents) / 2 + margin, axis=1)
-        points, colors = points[keep].astype(np.float64), colors[keep].astype(np.float64)
+        """Points (N, 3) m camera frame and colours (N, 3) 0..1 of a frame inside the box at ``pose``
+        (4x4 object to camera, full sides ``extents``) grown by ``margin`` (m); voxel-downsampled to ``voxel``."""
+        depth, color = self.image(frame_id)
+        camera, s = self.sequence.camera, self.stride
+        half = np.asarray(extents, dtype=np.float64) / 2 + margin
+        corners = (np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)]) * 2 - 1) * half
+        corners = corners @ pose[:3, :3].T + pose[:3, 3]
+        empty = np.zeros((0, 3))
+        if not np.all(np.isfinite(corners)) or np.all(corners[:, 2] <= 0):
+            return empty, empty
+        h, w = depth.shape
+        if np.any(corners[:, 2] <= 1e-3):  # the box reaches behind the camera: search the whole image
+            u0, v0, u1, v1 = 0, 0, w, h
+        else:
+            u = (camera.fx * corners[:, 0] / corners[:, 2] + camera.cx) / s
+            v = (camera.fy * corners[:, 1] / corners[:, 2] + camera.cy) / s
+            u0, u1 = int(np.clip(np.floor(u.min()), 0, w)), int(np.clip(np.ceil(u.max()) + 1, 0, w))
+            v0, v1 = int(np.clip(np.floor(v.min()), 0, h)), int(np.clip(np.ceil(v.max()) + 1, 0, h))
+        patch = depth[v0:v1, u0:u1]
+        vv, uu = np.nonzero(patch > 0)
+        z = patch[vv, uu].astype(np.float64)
+        points = np.stack([((uu + u0) * s - camera.cx) / camera.fx * z, ((vv + v0) * s - camera.cy) / camera.fy * z, z], axis=1)
+        colors = color[v0:v1, u0:u1][vv, uu].astype(np.float64) if color is not None else np.zeros_like(points)
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        keep = np.all(np.abs(local) <= half, axis=1)
+        points, colors = points[keep], colors[keep]
         if voxel and len(points):
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
             cloud.colors = o3d.utility.Vector3dVector(colors)

@@ -56,7 +56,7 @@ class ModelTarget:
             self.cloud.colors = o3d.utility.Vector3dVector(self.colors)
         if len(self.points) >= 3:
             # normals from ~4 voxels around each point: object-scale surface patches
-            self.cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * self.voxel_size, max_nn=30))
+            self.cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * self.voxel_size, max_nn=16))
         self._kiss_map = None
 
     def __len__(self) -> int:
