@@ -15,7 +15,7 @@ apt_install() {  # Debian packages, only when missing
 apt_install libusb-1.0-0            # open3d's wheel links against it
 if [ "$want" = test ]; then apt_install chromium; fi   # the end-to-end browser test
 pipq() {  # pip, quiet, without the noise of this machine's find-links warnings
-  .venv/bin/python -m pip install -q "$@" 2>&1 | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" || true; }
+  .venv/bin/python -m pip install -q "$@" 2>&1 | { grep -v -e "^WARNING: Location" -e "is ignored: it is neither" -e "^cpas-toolbox 1.0.0 requires" -e "dependency conflicts" || true; }
 }
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
