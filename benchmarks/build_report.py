@@ -385,7 +385,8 @@ sampling on the true rotations (symmetry-aware) among frames where the hand hide
 REDWOOD75 picks 5 diverse frames per sequence. Samples: {samples}; failed predictions: {failed}.
 **Methods:** `box` (PCA baseline) and `template` (built-in procedural templates, SO(3) search + similarity ICP),
 see `evaluate/methods/box.py` and `evaluate/methods/template.py`. Metrics and tables by `evaluate`
-(default thresholds, F-score at 1 cm). Total build time {seconds / 60:.1f} min.
+(default thresholds, F-score at 1 cm). Total build time {seconds / 60:.1f} min; the code it ran is in
+`build.json` (`tree`: `git describe --dirty` of the working tree).
 
 ## Table 2 layout: overall precision (%) per threshold, on both ground truths
 
@@ -488,8 +489,16 @@ def main(argv: list[str] | None = None) -> int:
         run_evaluate(work / f"dataset_{label}", work / "sequences", out / "same_predictions" / label, args.quiet, specs)
     args.seeds = [seeds[c] for c in args.categories]
     seconds = time.perf_counter() - started
-    options = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
-    write_text_atomic(out / "build.json", json.dumps({"seconds": round(seconds, 1), "options": options}, indent=1) + "\n")
+    def shown(value):  # paths inside the repository relative to it, so the file names no machine
+        if not isinstance(value, Path):
+            return value
+        value = value.resolve()
+        return str(value.relative_to(REPO)) if value.is_relative_to(REPO) else str(value)
+
+    options = {k: shown(v) for k, v in vars(args).items()}
+    tree = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    build = {"seconds": round(seconds, 1), "tree": tree or "unknown", "options": options}
+    write_text_atomic(out / "build.json", json.dumps(build, indent=1) + "\n")
     write_readme(out, results, quality, args, seconds)
     print(f"[{time.perf_counter() - started:6.0f} s] wrote {out / 'README.md'}")
     return 0

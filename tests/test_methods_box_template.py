@@ -6,6 +6,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import trimesh
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from evaluate.geometry import quat_to_matrix
@@ -113,9 +114,7 @@ def test_masked_points_drop_background_pixels_on_the_mask():
     clean = masked_points(depth, mask, CAMERA)
     assert len(clean) == mask.sum()  # nothing of the object itself is dropped
     # Bleed the mask 4 pixels onto a wall 1 m behind the object.
-    import scipy.ndimage
-
-    bled = scipy.ndimage.binary_dilation(mask, iterations=4)
+    bled = ndimage.binary_dilation(mask, iterations=4)
     wall = np.where(mask, depth, np.float32(1.7))
     points = masked_points(wall, bled, CAMERA)
     assert len(points) == mask.sum()

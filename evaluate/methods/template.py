@@ -45,6 +45,7 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from evaluate.geometry import matrix_to_quat
 from sequences.camera import Camera
@@ -76,8 +77,6 @@ def super_fibonacci_rotations(n: int) -> np.ndarray:
     alpha = 2.0 * np.pi * s / phi
     beta = 2.0 * np.pi * s / psi
     quaternions = np.stack([r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)], axis=1)
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_quat(quaternions).as_matrix()
 
 
@@ -425,8 +424,6 @@ class TemplateMethod(Method):
         ICP alone barely turns a mug about its body axis (only the few handle points pull), so a
         nearby grid is searched outright.
         """
-        from scipy.spatial.transform import Rotation
-
         scale, rotation, translation = pose
         ticks = np.radians(np.arange(-half_width, half_width + 1e-9, step))
         grid = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), axis=-1).reshape(-1, 3)
