@@ -22,8 +22,19 @@ def write_bytes_atomic(path: str | Path, data: bytes, backup: bool = False) -> P
             handle.flush()
             os.fsync(handle.fileno())
         if backup and path.exists():
-            # copy, not rename: the live file must exist at every moment
-            shutil.copy2(path, path.with_name(path.name + ".bak"))
+            # copy, not rename: the live file must exist at every moment; the copy goes to a
+            # temporary name first so that a kill mid-copy cannot leave a torn backup either
+            fd_bak, tmp_bak = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".bak.tmp", dir=path.parent)
+            os.close(fd_bak)
+            try:
+                shutil.copy2(path, tmp_bak)
+                os.replace(tmp_bak, path.with_name(path.name + ".bak"))
+            except BaseException:
+                try:
+                    os.unlink(tmp_bak)
+                except FileNotFoundError:
+                    pass
+                raise
         os.replace(tmp, path)
     except BaseException:
         try:
