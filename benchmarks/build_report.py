@@ -365,8 +365,8 @@ def quality_table(quality: list[dict]) -> str:
 
 def write_readme(out: Path, results: dict[str, dict], quality: list[dict], args, seconds: float) -> None:
     categories = list(CATEGORIES)
-    samples = {d: {m: r["methods"][m]["samples"] for m in r["methods"]} for d, r in results.items()}
-    failed = {d: {m: len(r["methods"][m]["failed"]) for m in r["methods"]} for d, r in results.items()}
+    samples = ", ".join(f"{m} on {d}: {r['methods'][m]['samples']}" for d, r in results.items() for m in r["methods"])
+    failed = ", ".join(f"{m} on {d}: {len(r['methods'][m]['failed'])}" for d, r in results.items() for m in r["methods"])
     reading = (out / "reading.md").read_text() if (out / "reading.md").exists() else "_No reading written yet._\n"
     text = f"""# Benchmark report: weights-free methods on ground truth made by the toolkit, and on the truth
 
@@ -382,7 +382,7 @@ every frame tracked (`annotate.tracking.track_sequence`), the object carved and 
 from the reconstruction). **True ground truth:** the same frames written from the generator's true
 poses, mesh and visible-object masks. **Selection:** {args.per_sequence} frames per sequence, farthest-point
 sampling on the true rotations (symmetry-aware) among frames where the hand hides little, as
-REDWOOD75 picks 5 diverse frames per sequence. Samples: {samples}; failed predictions: {failed}.
+REDWOOD75 picks 5 diverse frames per sequence. Samples: {samples}. Failed predictions: {failed}.
 **Methods:** `box` (PCA baseline) and `template` (built-in procedural templates, SO(3) search + similarity ICP),
 see `evaluate/methods/box.py` and `evaluate/methods/template.py`. Metrics and tables by `evaluate`
 (default thresholds, F-score at 1 cm). Total build time {seconds / 60:.1f} min; the code it ran is in
