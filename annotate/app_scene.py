@@ -110,7 +110,7 @@ class SceneView:
         self._box_key = key
 
     def _draw_box(self, extents, own_pose: bool) -> None:
-        """Box geometry below the gizmo: axis-coloured edges, tinted up (+y, green) and front (+z, blue) faces.
+        """Box geometry below the gizmo: axis-coloured edges, tinted up (+y, green) and front / handle side (-z, blue) faces.
 
         A frame without its own pose shows the borrowed box dashed-looking (thin, grey edges).
         """

@@ -32,8 +32,9 @@ DEFAULT_BOX_SIZE = 0.10
 #: Half width (px) of the centre window whose median depth places a new document's first box.
 CENTRE_WINDOW = 20
 UNDO_DEPTH = 200
-#: Default box orientation: object +y up (camera -y), object +z (front, mug handle) towards the camera.
-FACING_CAMERA = np.array([1.0, 0.0, 0.0, 0.0])  # 180 degrees about x: x y z w
+#: Default box orientation: object +y up (camera -y), object -z (front, mug handle: REDWOOD75/NOCS convention)
+#: towards the camera, i.e. object +z along camera +z.
+FACING_CAMERA = np.array([0.0, 0.0, 1.0, 0.0])  # 180 degrees about z: x y z w
 
 STATUSES = ("manual", "tracked", "refined", "flagged", "none")
 

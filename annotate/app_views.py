@@ -24,8 +24,8 @@ STATUS_COLORS = {
     "flagged": (225, 45, 45),
     "none": (70, 70, 70),
 }
-#: Faces tinted so that up (+y) and front / handle side (+z) are clear: (axis, sign, RGBA).
-TINTED_FACES = ((1, 1, (70, 220, 90, 90)), (2, 1, (70, 140, 255, 90)))
+#: Faces tinted so that up (+y) and front / handle side (-z, as in REDWOOD75 and NOCS) are clear: (axis, sign, RGBA).
+TINTED_FACES = ((1, 1, (70, 220, 90, 90)), (2, -1, (70, 140, 255, 90)))
 
 
 def edge_axes() -> np.ndarray:

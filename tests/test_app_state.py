@@ -44,10 +44,10 @@ def test_new_document_is_not_written_until_the_first_change(seq):
     centre = depth[near_centre]
     assert pose.position[2] == pytest.approx(float(np.median(centre[centre > 0])), abs=1e-6)
     assert pose.position[:2] == pytest.approx([0.0, 0.0])
-    # upright: object +y is camera -y (up in the image), object +z towards the camera
+    # upright: object +y is camera -y (up in the image), object -z (the handle side) towards the camera
     R = pose.matrix[:3, :3]
     np.testing.assert_allclose(R[:, 1], [0, -1, 0], atol=1e-12)
-    np.testing.assert_allclose(R[:, 2], [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(R[:, 2], [0, 0, 1], atol=1e-12)
     state.set_pose(pose.position, pose.orientation)
     assert path.exists() and not state.is_new
     saved = load_annotation(path)

@@ -67,7 +67,7 @@ def test_truth_document_and_mesh(mug):
     assert truth.category == "mug" and truth.symmetry == "none"
     np.testing.assert_allclose(truth.extents, truth.mesh.extents, atol=1e-6)
     np.testing.assert_allclose(truth.mesh.bounds.mean(axis=0), 0.0, atol=1e-6)
-    # a mug 8-12 cm tall, its handle along +z: the box reaches further along +z than the body's radius along x
+    # a mug 8-12 cm tall, its handle along -z: the box reaches further along z than the body's radius along x
     assert 0.08 <= truth.extents[1] <= 0.125
     assert truth.extents[2] > truth.extents[0] + 0.015
     vertices = np.asarray(truth.mesh.vertices)

@@ -17,7 +17,7 @@ What it does, in the camera frame (OpenCV, metres):
 3. Signs: a principal axis has no direction, so the up-axis ambiguity is resolved by shape:
    a bottle narrows towards +y (the neck), a bowl widens towards +y (the rim) -- the width is
    the spread across the silhouette (perpendicular to y and to the view ray) in the top and
-   bottom 30% of the points along y. A mug's +z is the side of the longer tail of the points along
+   bottom 30% of the points along y. A mug's -z is the side of the longer tail of the points along
    z (the handle is a thin appendage, so the body holds most points). Where shape says nothing
    (can; mug's y; other categories) y points to the camera's up (-y camera): the upright prior.
    x completes a right-handed frame (x = y cross z).
@@ -155,7 +155,7 @@ def assign_axes(category: str, points: np.ndarray, centroid: np.ndarray, axes: n
     if category == "mug":
         along = (points - centroid) @ z
         lo, median, hi = np.percentile(along, [LOW_PERCENTILE, 50.0, HIGH_PERCENTILE])
-        if hi - median < median - lo:  # the handle's thin tail lies on +z
+        if hi - median > median - lo:  # the handle's thin tail lies on -z (REDWOOD75/NOCS convention)
             z = -z
     x = np.cross(y, z)
     return np.stack([x, y, z], axis=1)

@@ -80,8 +80,8 @@ def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | 
     keys = max(4, int(round(frames / FRAMES_PER_KEY)))
     up, down = np.array([0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0])
     sides = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, -1.0], [0, 0, 1.0]])
-    # upright, handle (object +z) toward the camera, then a random spin about the object's y axis
-    start = Rotation.from_matrix(np.diag([1.0, -1.0, -1.0])) * Rotation.from_rotvec([0, rng.uniform(-np.pi, np.pi), 0])
+    # upright, handle (object -z) toward the camera, then a random spin about the object's y axis
+    start = Rotation.from_matrix(np.diag([-1.0, -1.0, 1.0])) * Rotation.from_rotvec([0, rng.uniform(-np.pi, np.pi), 0])
     start = Rotation.from_rotvec(rng.normal(0, 0.15, 3)) * start
     rotations = [start]
     for k in range(1, keys + 1):

@@ -1,7 +1,7 @@
 """Procedural object meshes per category, and loading a given mesh file, in the ShapeNet object frame.
 
 Object frame: ShapeNet axes (y up; bottles, bowls and cans symmetric about y; a mug's handle along
-+z), metres, centred on its axis-aligned box. Sizes are drawn per seed within realistic ranges:
+-z, as in REDWOOD75 and NOCS after cpas_toolbox's remapping), metres, centred on its axis-aligned box. Sizes are drawn per seed within realistic ranges:
 mug 8-12 cm tall, bowl 12-18 cm wide, bottle 20-30 cm tall, can about 6.6-7.6 x 10-13 cm.
 """
 
@@ -80,13 +80,14 @@ def _mug(rng: np.random.Generator) -> trimesh.Trimesh:
     profile = np.array([[0.0, 0.0], [radius * taper - 0.003, 0.0], [radius * taper, 0.003], [radius, height],
                         [radius - wall, height], [radius * taper - wall, wall + 0.004], [0.0, wall + 0.004]])
     body = revolve(profile, 64)
-    # handle: a C-shaped tube in the y-z plane on the +z side, its ends buried in the wall
+    # handle: a C-shaped tube in the y-z plane on the -z side (the real REDWOOD75/NOCS mugs'
+    # handles lie along -z in ShapeNet axes), its ends buried in the wall
     reach = rng.uniform(0.022, 0.035)
     half = rng.uniform(0.28, 0.36) * height
     thickness = rng.uniform(0.005, 0.008)
     a = np.linspace(-np.pi / 2, np.pi / 2, 20)
     wall_z = radius * (0.5 * (1 + taper)) - wall / 2
-    path = np.stack([np.zeros_like(a), height * 0.5 - half * np.sin(a), wall_z + reach * np.cos(a) ** 0.8], -1)
+    path = np.stack([np.zeros_like(a), height * 0.5 - half * np.sin(a), -(wall_z + reach * np.cos(a) ** 0.8)], -1)
     handle = tube(path, thickness, 12)
     return _mesh([body, handle])
 

@@ -1,7 +1,7 @@
 """Built-in procedural category templates: one typical real-size mesh per category.
 
 Object frame: ShapeNet axes (y up; bottle, bowl and can rotationally symmetric about y; a mug's
-handle along +z), metres, box-centred (the axis-aligned bounding box is centred on the origin).
+handle along -z, as the real REDWOOD75 and NOCS mugs in ShapeNet axes), metres, box-centred (the axis-aligned bounding box is centred on the origin).
 Sizes are typical household objects (a 0.5 l bottle, a 330 ml can, a cereal bowl, a coffee mug),
 so a template is also a size prior. The shapes are made here from revolved profiles rather than
 shipped as files, so they are small, exact and reproducible.
@@ -93,10 +93,11 @@ def _handle_tube(
 
 
 def mug_template() -> trimesh.Trimesh:
-    """A coffee mug: body radius 4.1 cm, 9.6 cm tall, 4 mm wall, a handle reaching 3.1 cm out along +z."""
+    """A coffee mug: body radius 4.1 cm, 9.6 cm tall, 4 mm wall, a handle reaching 3.1 cm out along -z."""
     r, h, wall = 0.041, 0.096, 0.004
     body = _revolved(np.array([[0.0, 0.0], [r, 0.0], [r, h], [r - wall, h], [r - wall, 0.008], [0.0, 0.008]]))
     handle = _handle_tube(y_half=0.032, reach=0.025, z_base=r - 0.002, tube_radius=0.006)
+    handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi, [0.0, 1.0, 0.0]))  # out along -z
     handle.apply_translation([0.0, h / 2, 0.0])
     return _box_centred(trimesh.util.concatenate([body, handle]))
 
