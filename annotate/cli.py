@@ -30,3 +30,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def entry() -> None:
     raise SystemExit(run_cli(main))
+
+
+if __name__ == "__main__":
+    entry()

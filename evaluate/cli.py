@@ -80,3 +80,7 @@ def _check_out(out) -> None:
 
 def entry() -> None:
     raise SystemExit(run_cli(main))
+
+
+if __name__ == "__main__":
+    entry()
