@@ -259,3 +259,40 @@ def test_frame_subset_and_bad_inputs(box_scene, tmp_path):
         pose.position = pose.position + np.array([0.0, 0.0, -0.3])  # object put 0.3 m in front of the wall it is on
     with pytest.raises(InputError, match="carving left no object"):
         reconstruct_sequence(sequence, wrong)
+
+
+@pytest.fixture(scope="module")
+def synthetic_mug(tmp_path_factory):
+    """A 100-frame synthetic held mug (sequences.synth) reconstructed from poses off by up to 1 deg / 2 mm."""
+    synth = pytest.importorskip("sequences.synth")
+    # 100 frames: the generator holds the object in ~30-frame grasps; with 40 frames (two grasps)
+    # the hand and arm stay in the views of one grasp only and are not carved (measured +25 mm)
+    root = synth.generate_sequence(tmp_path_factory.mktemp("synth") / "mug_synth", "mug", frames=100, seed=2)
+    truth = synth.load_truth(root)
+    annotation = synth.truth_annotation(truth, truth.ids, rotation_deg=1.0, translation_m=0.002, extents_rel=0.1, seed=0)
+    rec = reconstruct_sequence(open_sequence(root), annotation)
+    mesh = rec.mesh.copy()
+    mesh.apply_translation(rec.centre_shift)
+    return truth, rec, mesh
+
+
+@pytest.mark.slow  # generates a 100-frame synthetic sequence (~30-50 s on a loaded 2-core machine)
+def test_synthetic_held_mug_surface(synthetic_mug):
+    truth, rec, mesh = synthetic_mug
+    assert rec.mesh.is_watertight
+    assert fscore(mesh, truth.mesh, 0.005) >= 0.9
+    assert fscore(mesh, truth.mesh, 0.01) >= 0.95  # the mug's inside is seen from few frames (measured 0.96)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known shortfall (generator v3): a patch next to the last grasp's palm, by the handle, is never seen free; the box grows ~13 mm along z")
+def test_synthetic_held_mug_box_and_no_hand_remnants(synthetic_mug):
+    truth, rec, mesh = synthetic_mug
+    from scipy.spatial import cKDTree
+
+    samples = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
+    distance = cKDTree(trimesh.sample.sample_surface(truth.mesh, 20000, seed=1)[0]).query(samples)[0]
+    far = samples[distance > 0.01]
+    # nothing farther than 1 cm from the true surface outside the true box (the unseen cavity may stay)
+    assert (np.abs(far) <= truth.extents / 2 + 0.002).all()
+    np.testing.assert_allclose(rec.extents, truth.extents, atol=0.003)
