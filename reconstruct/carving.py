@@ -7,9 +7,13 @@ valid depth pixel its centre projects to lies behind it by more than a tolerance
 below). Missing depth, pixels outside the image and points behind the camera are unknown, never
 free. A voxel is carved when it is seen free in more than ``k`` frames: a few frames whose pose is
 off by a degree or two millimetres (or whose depth is noisy) can not eat the object, while a hand
-or any occluder that moves relative to the object is seen free in most frames and goes.
+or any occluder that moves relative to the object is seen free in most frames and goes. A veto
+keeps a voxel that more frames see just behind the measured surface (inside the object) than
+twice those that see it free: frames whose pose is off see the object's rim free, the others
+see it inside.
 
-The choice of ``k`` was measured (benchmarks/bench_reconstruct.py, see DEFAULT_MIN_FREE below).
+The thresholds were measured (benchmarks/bench_reconstruct.py, see DEFAULT_MIN_FREE below; the
+synthetic figures there are from sequences.synth generator v1, seed 2).
 """
 
 from __future__ import annotations
