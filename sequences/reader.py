@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from .camera import Camera
 from .errors import InputError
+from .images import read_color, read_depth_raw
 
 COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
 DEPTH_SUFFIXES = (".png",)
@@ -161,26 +161,12 @@ class Sequence:
 
     def color(self, frame: int | str) -> np.ndarray:
         """Colour image (H, W, 3) uint8 RGB of a frame (index or id)."""
-        path = self._resolve(frame).color_path
-        image = _open_image(path)
-        if image.mode not in ("RGB", "RGBA", "L", "P"):
-            raise InputError(path, f"colour image mode {image.mode} is not 8-bit RGB")
-        array = np.asarray(image.convert("RGB"))
-        self._check_size(path, array.shape[:2])
-        return array
+        return read_color(self._resolve(frame).color_path, self.camera)
 
     def depth_raw(self, frame: int | str) -> np.ndarray:
         """Depth image (H, W) uint16 in sensor units (multiply by ``camera.depth_scale`` for metres)."""
         path = self._resolve(frame).depth_path
-        image = _open_image(path)
-        if image.mode not in ("I;16", "I;16B", "I;16L", "I"):
-            raise InputError(path, f"depth image is not 16-bit (mode {image.mode}); expected 16-bit PNG in sensor units")
-        array = np.asarray(image)
-        if array.dtype != np.uint16:
-            if array.min(initial=0) < 0 or array.max(initial=0) > 65535:
-                raise InputError(path, "depth image is not 16-bit (values outside 0..65535)")
-            array = array.astype(np.uint16)
-        self._check_size(path, array.shape[:2])
+        array = read_depth_raw(path, self.camera)
         if not array.any():
             raise InputError(path, "depth frame has no valid pixel (all zero)")
         return array
@@ -189,26 +175,11 @@ class Sequence:
         """Depth image (H, W) float32 in metres, 0 = no measurement."""
         return self.depth_raw(frame).astype(np.float32) * np.float32(self.camera.depth_scale)
 
-    def _check_size(self, path: Path, shape: tuple[int, int]) -> None:
-        if shape != self.camera.shape:
-            raise InputError(path, f"image is {shape[1]}x{shape[0]} but the camera is {self.camera.width}x{self.camera.height} (colour and depth must match the camera; see camera.yaml)")
-
     def check(self) -> None:
         """Read every frame once (raises InputError on the first bad one)."""
         for i in range(len(self)):
             self.color(i)
             self.depth_raw(i)
-
-
-def _open_image(path: Path) -> Image.Image:
-    try:
-        image = Image.open(path)
-        image.load()
-    except FileNotFoundError as error:
-        raise InputError(path, "file not found") from error
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
-        raise InputError(path, f"unreadable or corrupt image ({' '.join(str(error).split()) or error.__class__.__name__})") from error
-    return image
 
 
 def open_sequence(root: str | Path, tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> Sequence:

@@ -72,12 +72,12 @@ def test_default_camera_is_primesense(tmp_path):
 
 def test_opening_reads_no_images(tmp_path, monkeypatch):
     root = redwood_sequence(tmp_path / "s", n=3)
-    import sequences.reader as reader
+    import sequences.images as images
 
     def forbidden(*args, **kwargs):
         raise AssertionError("an image was read while opening")
 
-    monkeypatch.setattr(reader, "_open_image", forbidden)
+    monkeypatch.setattr(images, "open_image", forbidden)
     seq = open_sequence(root)
     assert len(seq) == 3
 
