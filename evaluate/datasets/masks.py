@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 
+from evaluate.rendering import MeshRenderer, visible_mask
 from sequences.camera import Camera
+
+__all__ = ["OCCLUSION_MARGIN", "box_mesh", "render_depth", "visible_mask"]
 
 #: Observed depth this much (m) in front of the rendered surface marks the pixel as occluded,
 #: as in cpas_toolbox's AnnotatedRedwoodDataset._compute_mask.
@@ -12,31 +16,9 @@ OCCLUSION_MARGIN = 0.01
 
 
 def render_depth(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
-    """(H, W) z-depth (m) of a triangle mesh given in camera coordinates; 0 where no surface is hit.
-
-    Rays go through pixel centres (integer coordinates); the hit distance along a ray with
-    z-component 1 is the z-depth, the same quantity a depth camera measures.
-    """
-    import open3d as o3d  # slow import: only when a mask is needed
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
-    )
-    rays = np.zeros((camera.height, camera.width, 6), dtype=np.float32)
-    rays[..., 3:] = camera.pixel_rays()
-    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    return np.where(np.isfinite(hit), hit, 0.0).astype(np.float32)
-
-
-def visible_mask(rendered: np.ndarray, observed: np.ndarray | None, margin: float = OCCLUSION_MARGIN) -> np.ndarray:
-    """(H, W) bool: pixels covered by the rendered object and not occluded in the observed depth (m)."""
-    mask = rendered > 0
-    if observed is not None:
-        occluded = (observed > 0) & (observed < rendered - margin)
-        mask &= ~occluded
-    return mask
+    """(H, W) z-depth (m) of a triangle mesh given in camera coordinates; 0 where no surface is hit."""
+    mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces), process=False)
+    return MeshRenderer(mesh, camera).depth(np.eye(4))
 
 
 def box_mesh(extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
