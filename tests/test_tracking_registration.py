@@ -14,6 +14,7 @@ from annotate.tracking import BACKENDS, closest_about_y, estimate_symmetry_axis,
 from annotate.tracking.model import ObjectModel
 from annotate.tracking.quality import pose_difference
 from annotate.tracking.registration import ModelTarget, register
+from annotate.tracking.symmetry import fit_symmetry_axis
 from evaluate.geometry import invert, rotation_about_y, transform
 
 
@@ -149,6 +150,29 @@ def test_symmetry_axis_of_a_tilted_bottle_shape_and_snap_upright():
     snapped = snap_upright(pose, axis, point)
     assert np.allclose(snapped[:3, 1], axis, atol=1e-9)
     assert np.linalg.norm(snapped[:3, 3] - (pose[:3, 3] + point - axis * (axis @ point))) < 1e-9
+
+
+def test_symmetry_axis_conditioning_tells_a_sphere_cap_from_a_cylinder():
+    """A spherical cap's normal lines all meet at the sphere's centre: every axis through it fits, so the
+    fit must say the direction is undetermined (conditioning far from 0); a cylinder's axis is sharp.
+    Normals carry ~1 deg of noise, as estimated normals do (noise-free, the sphere's fit is 0 = 0)."""
+    rng = np.random.default_rng(0)
+
+    def noisy(normals):
+        normals = normals + rng.normal(scale=0.02, size=normals.shape)
+        return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+    # a shallow cap of a 10 cm sphere centred at the origin (a bowl's inside), normals radial
+    directions = rng.normal(size=(4000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    cap = directions[directions[:, 1] < -0.7]
+    _, _, _, cap_conditioning = fit_symmetry_axis(0.1 * cap, noisy(cap))
+    theta = rng.uniform(0, 2 * np.pi, 3000)
+    radial = np.stack([np.cos(theta), np.zeros_like(theta), np.sin(theta)], axis=1)
+    cylinder = 0.035 * radial + np.stack([np.zeros_like(theta), rng.uniform(-0.06, 0.06, 3000), np.zeros_like(theta)], axis=1)
+    axis, _, _, cylinder_conditioning = fit_symmetry_axis(cylinder, noisy(radial))
+    assert cap_conditioning > 0.4
+    assert cylinder_conditioning < 0.1 and abs(axis[1]) > 0.999
 
 
 def test_symmetry_axis_rejects_too_few_points():

@@ -23,6 +23,7 @@ class TrackingConfig:
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
+    max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
     update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)
     # review thresholds: a frame outside any of them gets flagged: true and a flag_reason
     min_fitness: float = 0.5

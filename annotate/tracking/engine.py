@@ -6,6 +6,8 @@
    each frame registered to the chain's growing model (propagate.py);
 3. reconcile: between two anchors, the two chains are blended (reconcile.py);
 4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py);
+   where the two chains disagreed, the frame is re-registered from each chain's pose: when both
+   land on the refined pose, the disagreement is re-measured as that spread (refine.py);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py);
@@ -26,8 +28,8 @@ from .frames import FrameStore
 from .propagate import run_chain
 from .quality import flag_reasons, in_box_share, pose_difference, rounded
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
-from .refine import build_model, min_hits_for, refine_all
-from .symmetry import estimate_symmetry_axis, snap_upright
+from .refine import build_model, min_hits_for, recheck_disagreements, refine_all
+from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
 Progress = Callable[[int, int], None]
@@ -68,9 +70,11 @@ def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: lis
     model = build_model(tracker, poses, tracker.config.max_global_frames, anchors)
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
-        axis, point, _ = estimate_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
+        axis, point, _, conditioning = fit_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
     except ValueError:
         return None
+    if conditioning > tracker.config.max_axis_conditioning:
+        return None  # the shape does not pin the axis down (a shallow bowl): the placed boxes' mean tilt is better
     # a large correction means the fit went wrong (a hand, a partial view), not that the boxes are 10 deg off
     if np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0 or np.linalg.norm(point) > 0.25 * np.max(tracker.extents):
         return None
@@ -106,6 +110,7 @@ def track_sequence(
 
     # 2-3: chains from every anchor, brought into anchor 0's object frame, and reconciled
     results: dict[str, FrameResult] = {}
+    chain_poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # both chains' poses, anchor 0's object frame
     forwards, backwards = [], []
     for a, b in zip(a_idx, a_idx[1:]):
         segment = ids[a : b + 1]
@@ -118,6 +123,7 @@ def track_sequence(
         forward = {f: FrameResult(r.pose @ frames_of[k], r.ok, r.figures) for f, r in forwards[k].items()}
         backward = {f: FrameResult(r.pose @ frames_of[k + 1], r.ok, r.figures) for f, r in backwards[k].items()}
         results.update(blend_chains(ids[a : b + 1], forward, backward, symmetric))
+        chain_poses.update({f: (forward[f].pose, backward[f].pose) for f in ids[a + 1 : b] if forward[f].ok and backward[f].ok})
     if a_idx[0] > 0:
         chain = run_chain(tracker, ids[a_idx[0] :: -1], results[anchors[0]].pose, steps)
         results.update(chain)
@@ -128,6 +134,8 @@ def track_sequence(
 
     # 4: joint refinement against the model of all frames
     results = refine_all(tracker, results, config.global_rounds, anchors, steps)
+    # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
+    results = recheck_disagreements(tracker, results, chain_poses, anchors)
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}

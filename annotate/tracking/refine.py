@@ -13,6 +13,9 @@ import numpy as np
 
 from .model import ObjectModel
 from .propagate import predict
+from .quality import pose_difference
+from .reconcile import interpolate
+from .symmetry import closest_about_y
 from .tracker import FrameResult, Tracker
 
 
@@ -89,3 +92,78 @@ def suspect(result: FrameResult, config) -> bool:
         or figures.get("chain_disagreement_deg", 0.0) > config.max_chain_disagreement_deg
         or figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m
     )
+
+
+#: a restart whose fitness is within this of the final pose's is an equally good rival pose
+RIVAL_FITNESS_MARGIN = 0.02
+
+
+def recheck_disagreements(
+    tracker: Tracker,
+    results: dict[str, FrameResult],
+    chain_poses: dict[str, tuple[np.ndarray, np.ndarray]],
+    anchors: list[str] = (),
+) -> dict[str, FrameResult]:
+    """Re-measure the chains' disagreement of the frames it made suspect, against their final poses.
+
+    The chains' disagreement says where a chain lost the object before the joint refinement; it
+    says nothing about the refined pose that replaced both. For each such frame, the frame is
+    registered to the model of all (well-fitting) final poses starting from the final pose and from
+    each chain's pose (``chain_poses[f]``: forward, backward, 4x4). A start that lands on a pose
+    fitting the model as well as the final pose (fitness within ``RIVAL_FITNESS_MARGIN``) is a
+    rival; one that lands on a clearly worse fit is a local minimum the final pose beats. With no
+    rival beyond the disagreement thresholds, the figures become the rivals' largest difference
+    from the final pose (the original kept as ``chain_disagreement_before_deg`` / ``_m``);
+    otherwise the frame keeps the chains' figures (and its flag). A frame whose final pose jumps
+    away from the midpoint of its neighbours' keeps them too (measured: a bowl frame slid 40 mm
+    along the model where the hand hid most of it, and no restart found a better fit).
+    """
+    config = tracker.config
+    todo = [f for f, r in results.items() if f in chain_poses and r.ok and suspect(r, config)]
+    if not todo:
+        return results
+    good = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, config) and r.figures.get("fitness", 0.0) >= config.min_fitness}
+    if len(good) < max(3, len(results) // 4):
+        return results  # too few trusted frames for a model to judge by
+    model = build_model(tracker, good, config.max_global_frames, [a for a in anchors if a in good])
+    hits = min_hits_for(model, config)
+    out = dict(results)
+    order = list(results)
+    for frame_id in todo:
+        final = results[frame_id]
+        if not _smooth_with_neighbours(results, order, frame_id, tracker.symmetric, config):
+            continue  # a jump away from both neighbours: the refined pose itself slid off (a model minimum elsewhere)
+        own = tracker.register(frame_id, final.pose, model, hits)  # the final pose's fit on this same model
+        if not own.ok:
+            continue
+        worst_deg, worst_m = 0.0, 0.0
+        for start in chain_poses[frame_id]:
+            restart = tracker.register(frame_id, start, model, hits)
+            if not restart.ok:
+                worst_deg = worst_m = float("inf")
+                break
+            # a start that settles elsewhere but fits clearly worse is a local minimum, not a rival pose
+            if restart.figures["fitness"] < own.figures["fitness"] - RIVAL_FITNESS_MARGIN:
+                continue
+            deg, metres = pose_difference(own.pose, restart.pose, tracker.symmetric)
+            worst_deg, worst_m = max(worst_deg, deg), max(worst_m, metres)
+        if worst_deg <= config.max_chain_disagreement_deg and worst_m <= config.max_chain_disagreement_m:
+            figures = dict(final.figures)
+            figures["chain_disagreement_before_deg"] = figures.get("chain_disagreement_deg", 0.0)
+            figures["chain_disagreement_before_m"] = figures.get("chain_disagreement_m", 0.0)
+            figures["chain_disagreement_deg"], figures["chain_disagreement_m"] = worst_deg, worst_m
+            out[frame_id] = FrameResult(final.pose, True, figures)
+    return out
+
+
+def _smooth_with_neighbours(results: dict[str, FrameResult], order: list[str], frame_id: str, symmetric: bool, config) -> bool:
+    """Whether a frame's pose lies within the chain-disagreement thresholds of the midpoint of its two
+    neighbours' poses (objects move smoothly between frames; an end frame is not judged this way)."""
+    i = order.index(frame_id)
+    if i == 0 or i == len(order) - 1:
+        return False
+    before, after = results[order[i - 1]].pose, results[order[i + 1]].pose.copy()
+    if symmetric:
+        after[:3, :3] = closest_about_y(after[:3, :3], before[:3, :3])
+    deg, metres = pose_difference(interpolate(before, after, 0.5), results[frame_id].pose, symmetric)
+    return deg <= config.max_chain_disagreement_deg and metres <= config.max_chain_disagreement_m

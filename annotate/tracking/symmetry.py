@@ -34,10 +34,29 @@ def estimate_symmetry_axis(
     normal_radius: float = 0.012,
     iterations: int = 5,
 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Axis of rotational symmetry of a surface sampled by ``points`` (N, 3) m: (direction, point, RMS residual).
+
+    See :func:`fit_symmetry_axis`, which also says how well the direction is determined.
+    """
+    return fit_symmetry_axis(points, normals, initial_axis, normal_radius, iterations)[:3]
+
+
+def fit_symmetry_axis(
+    points: np.ndarray,
+    normals: np.ndarray | None = None,
+    initial_axis=(0.0, 1.0, 0.0),
+    normal_radius: float = 0.012,
+    iterations: int = 5,
+) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Axis of rotational symmetry of a surface sampled by ``points`` (N, 3) m (object or any frame).
 
     Returns (unit direction (3,), signed to agree with ``initial_axis``; the point of the axis
-    closest to the origin (3,); RMS residual of the normal-line test in metres). Normals are
+    closest to the origin (3,); RMS residual of the normal-line test in metres; conditioning).
+    ``conditioning`` is the ratio of the smallest to the second-smallest singular value of the
+    direction problem: near 0 the direction is sharply determined, near 1 another direction fits
+    almost as well (a shallow bowl is nearly a sphere, whose normal lines all meet at its centre,
+    so any axis through the centre fits: measured 0.2 on a synthetic bowl against 0.06-0.08 on a
+    bottle and a can, whose axes came out 2.7 deg and 0.3-0.5 deg off). Normals are
     estimated (radius ``normal_radius``) when not given. Raises ValueError with fewer than 20
     finite points.
     """
@@ -67,7 +86,7 @@ def estimate_symmetry_axis(
         Q, _ = np.linalg.qr(N * sw)
         Mw = M * sw
         A = Mw - Q @ (Q.T @ Mw)  # remove what the moment can explain: residual as a function of the direction alone
-        _, _, vt = np.linalg.svd(A, full_matrices=False)
+        _, singular, vt = np.linalg.svd(A, full_matrices=False)
         axis = vt[-1]
         moment = -np.linalg.lstsq(N * sw, Mw @ axis, rcond=None)[0]
         r = N @ moment + M @ axis  # metres: distance-like misfit of each normal line
@@ -79,7 +98,8 @@ def estimate_symmetry_axis(
     point = c + centre
     point = point - axis * (axis @ point)  # closest point of the line to the origin
     rms = float(np.sqrt(np.mean((N @ moment + M @ axis) ** 2)))
-    return axis, point, rms
+    conditioning = float(singular[-1] / max(singular[-2], 1e-300))
+    return axis, point, rms, conditioning
 
 
 def snap_upright(pose: np.ndarray, axis: np.ndarray, point: np.ndarray) -> np.ndarray:
