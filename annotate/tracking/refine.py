@@ -47,8 +47,9 @@ def refine_all(
     """Re-register every frame of ``results`` (in order) to the model of all of them, ``rounds`` times.
 
     The model is built from the frames that are not suspect (registration failed, or the chains
-    disagree); a suspect frame starts from its predecessor's refined pose (constant velocity)
-    instead of its own, so a chain that lost the object is repaired against the whole model.
+    disagree); a suspect frame also starts from its predecessor's refined pose and its constant-
+    velocity prediction, the best-fitting start kept, so a chain that lost the object is repaired
+    against the whole model.
     A frame whose registration fails keeps its pose and figures (with the failure noted).
     """
     config = tracker.config
@@ -61,12 +62,16 @@ def refine_all(
         updated: dict[str, FrameResult] = {}
         last: list[np.ndarray] = []
         for frame_id, previous in results.items():
-            init = previous.pose
+            starts = [previous.pose]
             if suspect(previous, config) and last:
-                init = predict(last[-1], last[-2]) if len(last) > 1 else last[-1]
-            result = tracker.register(frame_id, init, model, hits)
-            if result.ok and init is not previous.pose and result.figures.get("fitness", 0.0) < config.min_fitness:
-                result = tracker.register(frame_id, previous.pose, model, hits)  # the prediction was worse than the chains' pose
+                # the chains' blend may be the lost one: also start from the last refined pose and its
+                # constant-velocity prediction, and keep the start that fits the model best
+                starts = [last[-1]] + ([predict(last[-1], last[-2])] if len(last) > 1 else []) + starts
+            result = None
+            for init in starts:
+                candidate = tracker.register(frame_id, init, model, hits)
+                if result is None or (candidate.ok and (not result.ok or candidate.figures.get("fitness", 0.0) > result.figures.get("fitness", 0.0))):
+                    result = candidate
             if result.ok:
                 figures = dict(previous.figures)
                 figures.update(result.figures)
