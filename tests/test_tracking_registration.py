@@ -180,3 +180,41 @@ def test_symmetry_axis_rejects_too_few_points():
         estimate_symmetry_axis(np.zeros((5, 3)))
     with pytest.raises(ValueError):
         estimate_symmetry_axis(np.full((100, 3), np.nan))
+
+
+def test_smooth_with_neighbours_catches_a_pose_that_jumped():
+    """The recheck of chain flags keeps a flag when the refined pose leaves its neighbours' midpoint."""
+    from annotate.tracking.config import TrackingConfig
+    from annotate.tracking.refine import _smooth_with_neighbours
+    from annotate.tracking.tracker import FrameResult
+
+    config = TrackingConfig()
+    # a steady turn of 4 deg and 5 mm per frame about a tilted axis: every inner frame is its neighbours' midpoint
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+    poses = []
+    for k in range(5):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(axis * np.radians(4.0 * k)).as_matrix()
+        T[:3, 3] = [0.005 * k, 0.0, 0.6]
+        poses.append(T)
+    ids = [str(k) for k in range(5)]
+    results = {f: FrameResult(T, True, {}) for f, T in zip(ids, poses)}
+    for symmetric in (False, True):
+        assert all(_smooth_with_neighbours(results, ids, f, symmetric, config) for f in ids[1:-1])
+        assert not _smooth_with_neighbours(results, ids, ids[0], symmetric, config)  # an end frame is not judged
+        assert not _smooth_with_neighbours(results, ids, ids[-1], symmetric, config)
+    slid = dict(results)
+    moved = poses[2].copy()
+    moved[:3, 3] += [0.0, 0.02, 0.0]  # 20 mm off, rotation kept
+    slid["2"] = FrameResult(moved, True, {})
+    assert not _smooth_with_neighbours(slid, ids, "2", False, config)
+    tipped = poses[2].copy()
+    tipped[:3, :3] = Rotation.from_rotvec([np.radians(8.0), 0, 0]).as_matrix() @ tipped[:3, :3]
+    slid["2"] = FrameResult(tipped, True, {})
+    assert not _smooth_with_neighbours(slid, ids, "2", True, config)  # a tilt of the axis counts for symmetric objects
+    # a turn about the object's own y (unobservable for symmetry y) does not
+    turned = poses[2].copy()
+    turned[:3, :3] = turned[:3, :3] @ rotation_about_y(np.radians(40.0))
+    slid["2"] = FrameResult(turned, True, {})
+    assert _smooth_with_neighbours(slid, ids, "2", True, config)
+    assert not _smooth_with_neighbours(slid, ids, "2", False, config)

@@ -10,7 +10,8 @@
    land on the refined pose, the disagreement is re-measured as that spread (refine.py);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
-   axis estimated from the model (symmetry.py);
+   axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
+   undetermined (a shallow bowl: nearly a sphere), where the placed boxes' mean tilt is kept;
 6. quality: figures and flags per frame (quality.py).
 """
 
