@@ -6,8 +6,9 @@
    each frame registered to the chain's growing model (propagate.py);
 3. reconcile: between two anchors, the two chains are blended (reconcile.py);
 4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py);
-   where the two chains disagreed, the frame is re-registered from each chain's pose: when both
-   land on the refined pose, the disagreement is re-measured as that spread (refine.py);
+   where the two chains disagreed, the frame is re-registered from each chain's pose: when no
+   start finds a rival pose fitting as well and the pose is smooth with its neighbours, the
+   disagreement is re-measured against the final pose (refine.recheck_disagreements);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
