@@ -1,7 +1,7 @@
 """Accuracy and speed of reconstruct-sequence on synthetic sequences (run on demand; prints figures).
 
     .venv/bin/python benchmarks/bench_reconstruct.py [--root /tmp/synth] [--categories bottle bowl mug can]
-        [--frames 100] [--seed 0] [--voxel-size 0.002] [--k K] [--tol-sigmas S]
+        [--frames 100] [--seed 0] [--voxel-size 0.002] [--k K] [--tol-sigmas S] [--no-shadows]
 
 For each category a synthetic 640x480 sequence (sequences.synth; generated into ROOT/<category>
 when missing) is reconstructed from every frame twice: with the true poses, and with every pose
@@ -77,6 +77,7 @@ def main() -> None:
     parser.add_argument("--voxel-size", type=float, default=0.002)
     parser.add_argument("--k", type=int, default=None)
     parser.add_argument("--tol-sigmas", type=float, default=None)
+    parser.add_argument("--no-shadows", action="store_true", help="missing depth stays unknown even where a projector shadow explains it")
     parser.add_argument("--no-export", action="store_true")
     args = parser.parse_args()
     extra = {}
@@ -84,6 +85,8 @@ def main() -> None:
         extra["k"] = args.k
     if args.tol_sigmas is not None:
         extra["tol_sigmas"] = args.tol_sigmas
+    if args.no_shadows:
+        extra["shadows"] = False
 
     print(f"load before: {os.getloadavg()} on {os.cpu_count()} cores")
     header = f"{'category':8} {'poses':9} {'F@5mm':>6} {'F@1cm':>6} {'extents err mm (x y z)':>24} {'remnant':>8} {'max mm':>7} {'carve':>6} {'mesh':>5} {'total':>6} {'cpu':>5} {'export':>6}"

@@ -90,6 +90,7 @@ def reconstruct_sequence(
     carved_share: float = carving.DEFAULT_CARVED_SHARE,
     veto: float | None = carving.DEFAULT_VETO,
     settle: int = carving.DEFAULT_SETTLE,
+    shadows: bool = carving.DEFAULT_SHADOWS,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
 ) -> Reconstruction:
@@ -111,7 +112,7 @@ def reconstruct_sequence(
     if grid.size > 60_000_000:
         raise InputError(source, f"voxel grid of {grid.shape} is too large: raise --voxel-size or check the extents")
     k_votes = carving.choose_k(len(ids)) if k is None else int(k)
-    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle)
+    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows)
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
