@@ -70,8 +70,10 @@ DEFAULT_CARVED_SHARE = 0.3
 #: poses): the mug's palm patch by the handle, behind the mug's own shadow in ~25 frames, went:
 #: without: extents +1.4 +2.2 +23.2 / +1.3 +2.0 +17.2 mm, F@1cm 0.962 / 0.964;
 #: filled with the occluder's depth only: z +5.2 / +3.6 mm; with the bound: -0.4 +2.2 +1.4 /
-#: -0.1 +1.1 +1.0 mm, F@1cm 0.972 / 0.972 (the rest is the mug's inside, never seen: free in 0-1
-#: frames). Bottle, bowl and can stay within 2.5 mm (bowl perturbed -0.4 -> -1.2 mm). ~9 ms a frame.
+#: -0.1 +1.1 +1.0 mm, F@1cm 0.972 / 0.972 (slack 2 / edge 1 px; with 1 / 3: +1.3 +2.2 +1.5 /
+#: +0.8 +1.3 +1.4 mm, F@1cm 0.972 / 0.973; the rest is the lower half of the mug's inside, hidden
+#: by its wall in every frame). Bottle, bowl, can: within 2.5 mm either way (seed 3: 2.7 mm; its
+#: bottle +4.1 -> +1.9 mm). ~9 ms a frame.
 DEFAULT_SHADOWS = True
 
 
@@ -83,11 +85,16 @@ def depth_sigma(z: np.ndarray | float) -> np.ndarray | float:
 #: The depth sensor's projector: metres along the camera's +x axis (PrimeSense: 7.5 cm to the right),
 #: so its shadows are bands of missing depth just left of foreground edges (see shadow_free_depth).
 PROJECTOR_BASELINE = 0.075
-#: Slack (pixels) on the width a projector shadow may have; measured on the synthetic mug (below).
-SHADOW_SLACK_PX = 2.0
+#: Slack (pixels) on the width a projector shadow may have, and pixels next to the occluder's edge
+#: that get only the occluder's depth (its sub-pixel position, an edge pixel lost to dropout).
+#: Measured (benchmarks/bench_reconstruct.py, seeds 2 and 3, 1 deg + 2 mm poses): slack 2 / edge 1
+#: and 2 / 2 shrink the seed-3 can's height by 3.5 mm (rim voxels seen free through the fill), 1 / 3
+#: by 2.4 mm (2.1 without the fill); 1 / 3 keeps the mug's box as tight (figures at DEFAULT_SHADOWS).
+SHADOW_SLACK_PX = 1.0
+SHADOW_EDGE_PX = 3.0
 
 
-def shadow_free_depth(depth: np.ndarray, fx: float, baseline: float = PROJECTOR_BASELINE, slack_px: float = SHADOW_SLACK_PX) -> np.ndarray:
+def shadow_free_depth(depth: np.ndarray, fx: float, baseline: float = PROJECTOR_BASELINE, slack_px: float = SHADOW_SLACK_PX, edge_px: float = SHADOW_EDGE_PX) -> np.ndarray:
     """Depth (H, W) float32 metres that each camera ray is known to be free up to: missing pixels that a projector shadow explains filled.
 
     A projector at ``baseline`` metres along the camera's +x sees a point at depth D, camera column
@@ -98,26 +105,26 @@ def shadow_free_depth(depth: np.ndarray, fx: float, baseline: float = PROJECTOR_
     pixel is free at least up to that depth (the occluder blocks the projector's ray, not the
     camera's), and the whole run, as wide as the shadow of d_near on the background d_far left of
     it (``fx * baseline * (1/d_near - 1/d_far)`` pixels, plus ``slack_px``), is explained by it.
-    Such runs are filled with that bound, counted from one pixel nearer the edge than the pixel
-    (slack for the edge's sub-pixel position) and capped at d_far, so the pixel next to the edge
-    gets d_near: a filled pixel never says free in front of the occluder, nor behind the
-    background. Other missing pixels stay 0 (unknown). With ``baseline`` < 0 rows are mirrored.
+    Such runs are filled with that bound, counted from ``edge_px`` pixels nearer the edge than the
+    pixel (slack for the edge's sub-pixel position and an edge pixel lost to dropout) and capped at
+    d_far, so the pixels next to the edge get d_near: a filled pixel never says free in front of
+    the occluder, nor behind the background. Other missing pixels stay 0 (unknown). With ``baseline`` < 0 rows are mirrored.
     """
     depth = np.asarray(depth, dtype=np.float32)
     if baseline < 0:
-        return shadow_free_depth(depth[:, ::-1], fx, -baseline, slack_px)[:, ::-1].copy()
+        return shadow_free_depth(depth[:, ::-1], fx, -baseline, slack_px, edge_px)[:, ::-1].copy()
     h, w = depth.shape
     valid = depth > 0
     columns = np.arange(w, dtype=np.int32)
     left = np.maximum.accumulate(np.where(valid, columns, -1), axis=1)  # nearest valid column at or left of each pixel
     right = np.minimum.accumulate(np.where(valid, columns, w)[:, ::-1], axis=1)[:, ::-1]  # ... at or right of it
     hole = ~valid & (left >= 0) & (right < w)
-    rows = np.nonzero(hole)[0]
+    rows, cols = np.nonzero(hole)
     d_left = depth[rows, left[hole]]
     d_right = depth[rows, right[hole]]
     width = (right[hole] - left[hole] - 1).astype(np.float32)
     explained = (d_right < d_left) & (width <= fx * baseline * (1.0 / d_right - 1.0 / d_left) + slack_px)
-    reach = (right[hole] - columns[np.nonzero(hole)[1]] - 1).astype(np.float32)  # pixels from the edge, less one
+    reach = np.maximum(right[hole] - cols - np.float32(edge_px), 0).astype(np.float32)  # pixels from the edge, less the slack
     inverse = np.maximum(1.0 / d_right - reach / np.float32(fx * baseline), 1.0 / d_left)
     filled = depth.copy()
     filled[hole] = np.where(explained, 1.0 / inverse, 0.0)

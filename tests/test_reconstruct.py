@@ -112,10 +112,10 @@ def test_shadow_fill_is_never_deeper_than_the_true_surface_and_reaches_the_backg
     assert (filled > 0).all()  # the whole shadow is explained
     assert (filled <= true + 1e-6).all()  # never free in front of a real surface
     edge = np.flatnonzero(hole).max()
-    assert filled[0, edge] == pytest.approx(0.6)  # next to the occluder: its depth
-    # farther from the edge the bound goes deeper: 10 px (less the one of slack) of disparity behind the occluder
-    assert filled[0, edge - 10] == pytest.approx(1 / (1 / 0.6 - 10 / (525 * 0.075)), rel=1e-5)
-    assert filled[0, np.flatnonzero(hole).min()] > 1.4  # the far end of the shadow: free nearly up to the wall
+    assert (filled[0, edge - 2 : edge + 1] == pytest.approx(0.6))  # next to the occluder (edge_px = 3): its depth
+    # farther from the edge the bound goes deeper: 11 px from the edge, less edge_px, of disparity behind the occluder
+    assert filled[0, edge - 10] == pytest.approx(1 / (1 / 0.6 - 8 / (525 * 0.075)), rel=1e-5)
+    assert filled[0, np.flatnonzero(hole).min()] > 1.2  # the far end of the shadow: free far behind the occluder
     # the projector on the left: mirrored scene, mirrored fill
     mirrored = carving.shadow_free_depth(np.tile(measured[::-1], (3, 1)), 525.0, baseline=-0.075)
     np.testing.assert_allclose(mirrored[:, ::-1], filled)
@@ -342,7 +342,7 @@ def test_synthetic_held_mug_surface(synthetic_mug):
     truth, rec, mesh = synthetic_mug
     assert rec.mesh.is_watertight
     assert fscore(mesh, truth.mesh, 0.005) >= 0.9
-    assert fscore(mesh, truth.mesh, 0.01) >= 0.95  # the mug's inside is seen from few frames (measured 0.96)
+    assert fscore(mesh, truth.mesh, 0.01) >= 0.95  # the lower half of the mug's inside is never seen (measured 0.97, generator v4)
 
 
 @pytest.mark.slow  # the palm's patch by the handle is seen free only through projector shadows (carve(shadows=True))
