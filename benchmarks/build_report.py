@@ -461,7 +461,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     started = time.perf_counter()
-    work, out = args.work, args.out
+    # sequences are reused between builds: keep them per generator version, so a new generator never
+    # meets an old sequence
+    from sequences.synth.options import GENERATOR_VERSION
+
+    work, out = args.work / f"generator-v{GENERATOR_VERSION}", args.out
     if args.fresh and work.exists():
         shutil.rmtree(work)
     for dataset in ("dataset_toolkit", "dataset_truth"):  # rebuilt every time, from the (reused) sequences
