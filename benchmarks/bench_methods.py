@@ -25,31 +25,20 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evaluate.geometry import quat_to_matrix  # noqa: E402
+from evaluate.metrics import rotation_error  # noqa: E402
 from evaluate.methods.box import BoxMethod  # noqa: E402
 from evaluate.methods.template import TemplateMethod  # noqa: E402
 from evaluate.methods.templates import builtin_template  # noqa: E402
+from evaluate.rendering import MeshRenderer  # noqa: E402
 from sequences.camera import Camera  # noqa: E402
 
 
 def render(mesh, rotation: np.ndarray, position: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Depth (H, W) float32 m and mask (H, W) bool of a posed mesh, by open3d ray casting."""
-    import open3d as o3d
-
-    vertices = np.asarray(mesh.vertices) @ rotation.T + position
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
-    rays = camera.pixel_rays().reshape(-1, 3)
-    length = np.linalg.norm(rays, axis=1, keepdims=True)
-    query = np.concatenate([np.zeros_like(rays), rays / length], axis=1).astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(query))["t_hit"].numpy()
-    depth = np.where(np.isfinite(hit), hit / length[:, 0], 0.0).reshape(camera.height, camera.width).astype(np.float32)
+    """Depth (H, W) float32 m (0 = miss) and mask (H, W) bool of ``mesh`` posed object->camera."""
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, position
+    depth = MeshRenderer(mesh, camera).depth(pose)
     return depth, depth > 0
-
-
-def rotation_error_deg(truth: np.ndarray, predicted: np.ndarray, symmetric: bool) -> float:
-    if symmetric:
-        return float(np.degrees(np.arccos(np.clip(truth[:, 1] @ predicted[:, 1], -1.0, 1.0))))
-    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(truth.T @ predicted).as_rotvec())))
 
 
 def main() -> None:
@@ -81,7 +70,7 @@ def main() -> None:
                 prediction = method.inference(None, depth, mask, category, camera)
                 seconds.append(time.perf_counter() - start)
                 cpu.append(time.process_time() - start_cpu)
-                degrees.append(rotation_error_deg(rotation, quat_to_matrix(prediction.orientation), symmetric))
+                degrees.append(rotation_error(rotation, quat_to_matrix(prediction.orientation), "y" if symmetric else "none"))
                 metres.append(float(np.linalg.norm(prediction.position - position)))
             degrees, metres, seconds = map(np.asarray, (degrees, metres, seconds))
             print(
