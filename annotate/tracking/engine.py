@@ -28,7 +28,7 @@ from sequences.reader import Sequence
 from .config import TrackingConfig, scaled_to
 from .frames import FrameStore
 from .propagate import run_chain
-from .quality import flag_reasons, in_box_share, pose_difference, rounded
+from .quality import document_figures, in_box_share, pose_difference
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .refine import build_model, min_hits_for, recheck_disagreements, refine_all
 from .symmetry import fit_symmetry_axis, snap_upright
@@ -160,12 +160,7 @@ def track_sequence(
             deg, metres = pose_difference(placed[frame_id], poses[frame_id], symmetric)
             figures["manual_correction_deg"] = deg
             figures["manual_correction_m"] = metres
-        reasons = flag_reasons(figures, config)
-        figures = rounded(figures)
-        figures.pop("error", None)
-        if reasons:
-            figures["flagged"] = True
-            figures["flag_reason"] = "; ".join(reasons)
+        figures = document_figures(figures, config)
         if frame_id in placed and annotation.frames[frame_id].source == "manual":
             old = annotation.frames[frame_id]
             extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason")}
@@ -214,10 +209,5 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
         hits = 1
     result = tracker.register(frame_id, start, model, hits)
     figures = dict(result.figures)
-    reasons = flag_reasons(figures, config)
-    figures = rounded(figures)
-    figures.pop("error", None)
-    if reasons:
-        figures["flagged"] = True
-        figures["flag_reason"] = "; ".join(reasons)
+    figures = document_figures(figures, config)
     return FramePose.from_matrix(result.pose, "refined", figures)

@@ -61,6 +61,18 @@ def flag_reasons(figures: dict, config) -> list[str]:
     return reasons
 
 
+def document_figures(figures: dict, config) -> dict:
+    """Figures as written to the document: rounded, the raw error message dropped, and
+    ``flagged: true`` with ``flag_reason`` where :func:`flag_reasons` finds any."""
+    reasons = flag_reasons(figures, config)
+    out = rounded(figures)
+    out.pop("error", None)
+    if reasons:
+        out["flagged"] = True
+        out["flag_reason"] = "; ".join(reasons)
+    return out
+
+
 def rounded(figures: dict) -> dict:
     """Figures rounded for the document (4 significant decimals for shares, 0.1 mm, 0.01 deg)."""
     out = {}
