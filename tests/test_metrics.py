@@ -46,7 +46,9 @@ def test_identical_boxes_have_iou_one_in_any_pose():
     for seed in range(5):
         R = Rotation.random(random_state=seed).as_matrix()
         T = pose(R, np.random.default_rng(seed).normal(size=3))
-        assert box_iou([0.1, 0.2, 0.3], T, [0.1, 0.2, 0.3], T) == pytest.approx(1.0, abs=1e-12)
+        assert box_iou([0.1, 0.2, 0.3], T, [0.1, 0.2, 0.3], T) == 1.0  # exactly: a perfect prediction scores 1
+        assert box_iou_batch(np.full((3, 3), 0.1), np.stack([T] * 3), np.full((3, 3), 0.1), np.stack([T] * 3)).tolist() == [1.0] * 3
+        assert symmetric_box_iou([0.1, 0.2, 0.3], T, [0.1, 0.2, 0.3], T) == 1.0
 
 
 def test_axis_aligned_overlap_matches_product_of_interval_overlaps():
@@ -86,6 +88,8 @@ def test_contained_box_gives_volume_ratio():
     small = pose(R @ rot("y", 20), (0.01, 0.0, 0.02))
     assert box_iou([1, 1, 1], pose(R), [0.2, 0.3, 0.4], small) == pytest.approx(0.024, abs=1e-13)
     assert box_iou([0.2, 0.3, 0.4], small, [1, 1, 1], pose(R)) == pytest.approx(0.024, abs=1e-13)
+    # containment makes the union the bigger box: the IoU is the volume ratio to the last bit
+    assert box_iou([1, 1, 1], pose(R), [0.2, 0.3, 0.4], small) == (0.2 * 0.3 * 0.4) / 1.0
 
 
 def test_coplanar_faces_are_counted_once():
@@ -387,7 +391,12 @@ def test_shape_index_hits_shortcut_is_exactly_the_distance_test():
     direction = rng.normal(size=(100, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     shell = index.points[:100] * 1.5 + direction * 1e-3  # far from the sphere
-    for pred in (sample_surface(mesh, 2500, seed=2) * 1.03, near, on_grid, shell):
+    # dense prediction with a hole: few gt points undecided, checked against only the predicted points near them
+    dense = sample_surface(mesh, 20000, seed=3)
+    holed = dense[dense[:, 2] < 0.045]
+    far_and_many = rng.normal(size=(90000, 3)) * 0.01 + [0.2, 0, 0]  # no predicted point near any gt point
+    misaligned = index.points @ Rotation.from_rotvec([0.02, 0.05, -0.03]).as_matrix().T + [0.005, -0.004, 0.01]
+    for pred in (sample_surface(mesh, 2500, seed=2) * 1.03, near, on_grid, shell, holed, far_and_many, misaligned):
         d_gt, d_pred = index.distances(pred)
         hit_gt, hit_pred = index.hits(pred, threshold)
         np.testing.assert_array_equal(hit_gt, d_gt < threshold)

@@ -62,6 +62,7 @@ _OWN_B = _OWN_A + 6
 _FOREIGN_A = np.arange(4, 10)
 _FOREIGN_B = np.arange(0, 6)
 _CHUNK = 1024
+_CORNERS = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], dtype=np.float64) * 2 - 1
 _FACES = 8  # A's 6 faces and B's +x, -x faces: the others have n_x = 0 in V = integral of x n_x dA
 
 
@@ -202,9 +203,12 @@ def _polygon_moments(a_s, a_r, b, tol):
     return np.stack([area, m_s + cs * area, m_r + cr * area])  # moments about the (s, r) origin
 
 
-def _iou_from_volumes(inter: np.ndarray, vol_a: np.ndarray, vol_b: np.ndarray) -> np.ndarray:
+def _iou_from_volumes(inter: np.ndarray, vol_a: np.ndarray, vol_b: np.ndarray, a_in_b: np.ndarray,
+                      b_in_a: np.ndarray) -> np.ndarray:
     inter = np.clip(inter, 0.0, np.minimum(vol_a, vol_b))
-    union = vol_a + vol_b - inter
+    # A inside B: the union is B itself, so the IoU is exactly vol_a / vol_b (1.0 for identical boxes,
+    # where vol_a + vol_b - inter would leave a rounding error in the last bit).
+    union = np.where(a_in_b, vol_b, np.where(b_in_a, vol_a, vol_a + vol_b - inter))
     with np.errstate(invalid="ignore", divide="ignore"):
         iou = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
     return np.clip(iou, 0.0, 1.0)
@@ -217,13 +221,19 @@ def _box_iou_arrays(extents_a, T_a, extents_b, T_b) -> np.ndarray:
     Ra, Rb = T_a[:, :3, :3], T_b[:, :3, :3]
     R = np.einsum("mji,mjk->mik", Rb, Ra)
     t = np.einsum("mji,mj->mi", Rb, T_a[:, :3, 3] - T_b[:, :3, 3])
-    # Only pairs that have volume and whose bounding spheres meet need the polygon work.
+    # A box inside the other (up to the _FEASIBLE tolerance) is the intersection itself.
+    tol = _FEASIBLE * (half_a.max(axis=1) + half_b.max(axis=1) + np.linalg.norm(t, axis=1))
+    corners_a = t[:, None, :] + np.einsum("mij,mkj->mki", R, _CORNERS * half_a[:, None, :])  # in B's frame
+    a_in_b = np.all(np.abs(corners_a) <= half_b[:, None, :] + tol[:, None, None], axis=(1, 2))
+    corners_b = np.einsum("mji,mkj->mki", R, _CORNERS * half_b[:, None, :] - t[:, None, :])  # in A's frame
+    b_in_a = np.all(np.abs(corners_b) <= half_a[:, None, :] + tol[:, None, None], axis=(1, 2))
+    inter = np.where(a_in_b, vol_a, np.where(b_in_a, vol_b, 0.0))
+    # Only other pairs that have volume and whose bounding spheres meet need the polygon work.
     reach = np.linalg.norm(half_a, axis=1) + np.linalg.norm(half_b, axis=1)
-    work = (vol_a > 0) & (vol_b > 0) & (np.linalg.norm(t, axis=1) < reach)
-    inter = np.zeros(len(vol_a))
+    work = (vol_a > 0) & (vol_b > 0) & (np.linalg.norm(t, axis=1) < reach) & ~a_in_b & ~b_in_a
     if np.any(work):
         inter[work] = _intersection_volume(half_a[work], half_b[work], R[work], t[work])
-    iou = _iou_from_volumes(inter, vol_a, vol_b)
+    iou = _iou_from_volumes(inter, vol_a, vol_b, a_in_b, b_in_a)
     return np.where((vol_a > 0) & (vol_b > 0), iou, 0.0)
 
 
