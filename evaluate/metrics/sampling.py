@@ -102,7 +102,8 @@ class ShapeIndex:
         closer than ``threshold`` for sure.  Two such grids, the second shifted by half a cell, decide
         most points of a reasonable prediction; the gt side of each grid is computed once per object
         and threshold.  Only the undecided points need a KD-tree query: predicted points against the
-        prebuilt gt tree, gt points against a tree of just the predicted points in their neighbourhood.
+        prebuilt gt tree (each hit also settles its nearest gt point), then the gt points still
+        undecided against a tree of just the predicted points in their neighbourhood.
         """
         if not np.isfinite(threshold) or threshold <= 0:
             raise ValueError(f"threshold must be a positive distance in metres, got {threshold}")
@@ -120,7 +121,9 @@ class ShapeIndex:
         bound = threshold * (1 + 1e-9)  # the strict "< threshold" test stays exact
         rest = np.flatnonzero(~hit_pred)
         if len(rest):
-            hit_pred[rest] = nearest_distances(pred[rest], self.tree, bound, _workers(len(rest))) < threshold
+            d, nearest = self.tree.query(pred[rest], k=1, distance_upper_bound=bound, workers=_workers(len(rest)))
+            hit_pred[rest] = d < threshold
+            hit_gt[nearest[d < threshold]] = True  # a gt point closer than threshold to a prediction is a hit too
         rest = np.flatnonzero(~hit_gt)
         if len(rest):
             tree = _tree_near(pred, self.points[rest], threshold)
