@@ -266,7 +266,7 @@ def box_iou(extents_a, T_a, extents_b, T_b) -> float:
 
 # --- symmetric IoU -------------------------------------------------------------------------------
 
-_SUBDIVIDE = 8  # finer grid inside intervals that may hold the maximum
+_BISECT = 3  # rounds of halving the intervals that may hold the maximum (to 1/8 of the grid spacing)
 _REFINE = 3  # brackets refined per pair: its highest local maxima
 _ZOOM = 8  # points per bracket and refinement step (the bracket shrinks ~4.5x per step)
 
@@ -304,10 +304,10 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
     piecewise-smooth function of the angle phi with period pi (a box maps onto itself under a half turn).
     The maximum is found as follows, and why it is the maximum:
 
-    1. ``grid`` equally spaced angles in [0, pi) (spacing h) bracket it: by the bound below the IoU
-       changes by at most ``L * h / 2`` between a grid angle and any angle within h/2 of it, so only
-       brackets [phi_i - h, phi_i + h] with IoU(phi_i) + L h / 2 >= (best grid value) can hold the
-       maximum; all of those are refined, the others are provably lower.
+    1. ``grid`` equally spaced angles in [0, pi) (spacing h) bracket it: by the bound below, on an
+       interval of width w between samples f_l and f_r the IoU is at most (f_l + f_r + L w) / 2, so
+       only intervals whose bound reaches the best value found so far can hold the maximum; those
+       are halved (branch and bound, three rounds), the others are provably lower.
        L = e_y (e_x^2 + e_z^2) / max(V_gt, V_pred) bounds |dIoU/dphi|: rotating about y, only the four
        side faces sweep volume, at normal speed at most |z| (x faces) or |x| (z faces), so
        |dV_inter/dphi| <= e_y (e_x^2 + e_z^2) / 2 and dIoU/dV_inter <= 2 / union.
@@ -358,19 +358,28 @@ def symmetric_box_iou_batch(extents_gt, T_gt, extents_pred, T_pred, grid: int = 
     if len(a_rows):
         consider(a_rows, a_angles, a_values)
 
-    # 1. intervals [phi_i, phi_i+1] whose Lipschitz bound (f_i + f_i+1 + L h) / 2 reaches the best value
-    # get a finer grid (spacing h / _SUBDIVIDE); the bound then prunes that grid in turn.
+    # 1. branch and bound: intervals [phi_l, phi_r] whose Lipschitz bound (f_l + f_r + L w) / 2 reaches
+    # the best value so far are halved, _BISECT times; the bound, tightening as w halves, prunes the
+    # others (they provably stay below the best value).
     vol_a, vol_b = box_volume(ea), box_volume(eb)
     lipschitz = eb[:, 1] * (eb[:, 0] ** 2 + eb[:, 2] ** 2) / np.maximum(np.maximum(vol_a, vol_b), 1e-300)
-    upper = (grid_iou + np.roll(grid_iou, -1, axis=1) + (lipschitz * h)[:, None]) / 2
-    i_rows, i_idx = np.nonzero(upper >= best[:, None])
-    if len(i_rows):
-        sub = np.arange(1, _SUBDIVIDE) * (h / _SUBDIVIDE)
-        f_rows = np.repeat(i_rows, len(sub))
-        f_angles = (i_idx[:, None] * h + sub[None, :]).ravel()
-        f_values = iou_at(f_rows, f_angles)
-        consider(f_rows, f_angles, f_values)
-        samples_rows.append(f_rows), samples_angles.append(f_angles), samples_values.append(f_values)
+    i_rows = np.repeat(np.arange(n), grid)
+    i_lo = grid_angles
+    i_f_lo, i_f_hi = grid_iou.ravel(), np.roll(grid_iou, -1, axis=1).ravel()
+    width = h
+    for _ in range(_BISECT):
+        keep = (i_f_lo + i_f_hi + lipschitz[i_rows] * width) / 2 >= best[i_rows]
+        i_rows, i_lo, i_f_lo, i_f_hi = i_rows[keep], i_lo[keep], i_f_lo[keep], i_f_hi[keep]
+        if not len(i_rows):
+            break
+        width /= 2
+        mid = i_lo + width
+        f_mid = iou_at(i_rows, mid)
+        consider(i_rows, mid, f_mid)
+        samples_rows.append(i_rows), samples_angles.append(mid), samples_values.append(f_mid)
+        i_rows = np.concatenate([i_rows, i_rows])
+        i_lo = np.concatenate([i_lo, mid])
+        i_f_lo, i_f_hi = np.concatenate([i_f_lo, f_mid]), np.concatenate([f_mid, i_f_hi])
     # 2. zooming search, maximising, on brackets around the local maxima of each pair's samples (in
     # angle order; a local maximum's bracket runs from its left to its right neighbour), at most
     # _REFINE per pair, the highest first, skipping those the Lipschitz bound rules out.
