@@ -21,9 +21,16 @@ class TrackingConfig:
     model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
+    free_space_tolerance: float = 0.01  #: global models drop voxels seen through by more than this (0: off)
+    max_through_share: float = 0.5  #: ... in more than this share of the frames that see them (a moved hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
+    smoothing: bool = True  #: smooth the refined poses where registration leaves a direction weak (smooth.py)
+    information_sigma: float = 0.002  #: point noise (m) scaling a frame's registration information
+    rotation_acceleration_deg: float = 0.5  #: expected rotational acceleration, deg per frame squared (hand-held, 30 fps)
+    translation_acceleration: float = 0.0005  #: expected acceleration of the centre, m per frame squared
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
+    threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
     update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)
     # review thresholds: a frame outside any of them gets flagged: true and a flag_reason
     min_fitness: float = 0.5

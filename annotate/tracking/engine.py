@@ -8,12 +8,19 @@
 4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py);
    where the two chains disagreed, the frame is re-registered from each chain's pose: when no
    start finds a rival pose fitting as well and the pose is smooth with its neighbours, the
-   disagreement is re-measured against the final pose (refine.recheck_disagreements);
+   disagreement is re-measured against the final pose (refine.recheck_disagreements); the
+   models of all frames leave out voxels that other frames see through (a hand before a
+   regrasp, freespace.py);
+4b. smooth: where a frame's registration leaves a direction weak (a mug's spin with its handle
+   hidden), the pose is taken from its neighbours by an information-weighted least-squares
+   smoothing (smooth.py);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the placed boxes' mean tilt is kept;
 6. quality: figures and flags per frame (quality.py).
+
+Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures).
 """
 
 from __future__ import annotations
@@ -29,8 +36,9 @@ from .config import TrackingConfig, scaled_to
 from .frames import FrameStore
 from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference
+from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
-from .refine import build_model, min_hits_for, recheck_disagreements, refine_all
+from .refine import build_model, min_hits_for, recheck_disagreements, refine_all, smooth_refined
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
@@ -98,6 +106,11 @@ def track_sequence(
     the range holds no posed frame.
     """
     config = scaled_to(config or TrackingConfig(), annotation.extents)
+    with open3d_threads(config.threads):
+        return _track(sequence, annotation, frames, config, progress)
+
+
+def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None, config: TrackingConfig, progress: Progress | None) -> Annotation:
     ids = _ordered_range(sequence, frames)
     anchors = _anchors(annotation, ids)
     if not anchors:
@@ -138,6 +151,8 @@ def track_sequence(
     results = refine_all(tracker, results, config.global_rounds, anchors, steps)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
+    if config.smoothing:
+        results = smooth_refined(tracker, results, anchors)
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}
@@ -183,7 +198,11 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
     ValueError when the document has no pose to start from.
     """
     config = scaled_to(config or TrackingConfig(), annotation.extents)
-    frame_id = str(frame_id)
+    with open3d_threads(config.threads):
+        return _refine_one(sequence, annotation, str(frame_id), config)
+
+
+def _refine_one(sequence: Sequence, annotation: Annotation, frame_id: str, config: TrackingConfig) -> FramePose:
     ids = sequence.ids
     if frame_id not in ids:
         raise ValueError(f"frame {frame_id!r} is not in the sequence")

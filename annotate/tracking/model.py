@@ -86,6 +86,13 @@ class ObjectModel:
         R, t = pose[:3, :3], pose[:3, 3]
         self.add((np.asarray(points_cam) - t) @ R, colors, weight)
 
+    def keep(self, mask: np.ndarray) -> None:
+        """Drop the voxels where ``mask`` (len(self),) is False (e.g. seen through by other frames)."""
+        mask = np.asarray(mask, dtype=bool)
+        self.keys, self.sum_xyz, self.sum_rgb = self.keys[mask], self.sum_xyz[mask], self.sum_rgb[mask]
+        self.count, self.hits = self.count[mask], self.hits[mask]
+        self._target, self._target_key = None, None
+
     def points(self, min_hits: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Voxel centroids (M, 3) in the object frame and mean colours (M, 3), of voxels hit in >= ``min_hits`` frames."""
         keep = self.hits >= min_hits

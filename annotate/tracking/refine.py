@@ -1,7 +1,9 @@
 """Joint refinement: every frame registered to the model built from all frames, so drift cannot build up.
 
 The model of all frames (at their current poses) averages the views; voxels seen in fewer than
-``global_min_hits`` frames (a hand that moved relative to the object) are left out of the target.
+``global_min_hits`` frames (a hand that moved relative to the object) are left out of the target,
+and so are voxels that the frames see through more often than they see them (freespace.py: a
+hand held still through one grasp is hit in tens of frames, but seen through after a regrasp).
 A few rounds alternate between rebuilding the model and re-registering each frame to it.
 """
 
@@ -11,6 +13,8 @@ from typing import Callable
 
 import numpy as np
 
+from .freespace import free_space_votes
+from .smooth import registration_information, smooth_poses
 from .model import ObjectModel
 from .propagate import predict
 from .quality import pose_difference
@@ -29,6 +33,12 @@ def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int,
     model = tracker.new_model()
     for frame_id in ids:
         tracker.add_to_model(model, frame_id, poses[frame_id])
+    config = tracker.config
+    if config.free_space_tolerance > 0 and len(model):
+        # a voxel the frames see through more often than they see it is not rigid with the object (a hand)
+        points, _ = model.points(1)
+        through, seen = free_space_votes(points, {f: poses[f] for f in ids}, tracker.store, config.free_space_tolerance)
+        model.keep(through <= config.max_through_share * seen)
     return model
 
 
@@ -172,3 +182,36 @@ def _smooth_with_neighbours(results: dict[str, FrameResult], order: list[str], f
         after[:3, :3] = closest_about_y(after[:3, :3], before[:3, :3])
     deg, metres = pose_difference(interpolate(before, after, 0.5), results[frame_id].pose, symmetric)
     return deg <= config.max_chain_disagreement_deg and metres <= config.max_chain_disagreement_m
+
+
+def smooth_refined(tracker: Tracker, results: dict[str, FrameResult], anchors: list[str] = ()) -> dict[str, FrameResult]:
+    """The refined poses (``results`` in frame order) smoothed where their registration is weak (smooth.py).
+
+    Each frame's information comes from its points at its pose against the model of the trusted
+    frames; a frame whose registration failed, fits poorly or whose chains disagree gives none
+    (its pose is interpolated from its neighbours). Figures and flags are kept.
+    """
+    config = tracker.config
+    order = list(results)
+    trusted = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, config) and r.figures.get("fitness", 0.0) >= config.min_fitness}
+    if len(trusted) < max(3, len(results) // 4):
+        return results
+    model = build_model(tracker, trusted, config.max_global_frames, [a for a in anchors if a in trusted])
+    target = model.target(min_hits_for(model, config))
+    information = []
+    for frame_id in order:
+        if frame_id not in trusted:
+            information.append(np.zeros((6, 6)))
+            continue
+        pose = results[frame_id].pose
+        points, _ = tracker.crop(frame_id, pose, margin=0.0)
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        information.append(registration_information(local, target, config.registration.fine_distance, config.information_sigma))
+    poses = smooth_poses(
+        [results[f].pose for f in order],
+        information,
+        np.radians(config.rotation_acceleration_deg),
+        config.translation_acceleration,
+        free_y=tracker.symmetric,
+    )
+    return {f: FrameResult(p, results[f].ok, results[f].figures) for f, p in zip(order, poses)}
