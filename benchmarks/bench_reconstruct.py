@@ -2,11 +2,18 @@
 
     .venv/bin/python benchmarks/bench_reconstruct.py [--root /tmp/synth] [--categories bottle bowl mug can]
         [--frames 100] [--seed 0] [--voxel-size 0.002] [--k K] [--tol-sigmas S] [--no-shadows]
+        [--unbacked N | --no-unbacked] [--no-evidence-hull] [--bound]
+
+Use one --root per --seed (a sequence generated there is reused whatever the seed).
 
 For each category a synthetic 640x480 sequence (sequences.synth; generated into ROOT/<category>
 when missing) is reconstructed from every frame twice: with the true poses, and with every pose
 perturbed by exactly 1 degree (random axis) and 2 mm (random direction). The annotated extents
-are off by up to 10 % (the carving margin must cover that). Printed per run:
+are off by up to 10 % (the carving margin must cover that). With --bound a third run, "bound",
+carves with the true poses every voxel seen free in even one frame (k = 0, no veto, hence no
+evidence hull): no rule on free-space votes can carve more, so what it leaves (a cavity or a
+hand-covered patch never seen free) is missing from the data, not from the rule. --no-evidence-hull
+keeps the unseen space that no measured surface bounds (reconstruct.evidence). Printed per run:
 
 - F@5mm, F@1cm: F-score of the mesh against the true mesh (area-weighted surface samples, cKDTree);
 - extents error: the tight box's extents minus the true extents (mm, x y z);
@@ -78,6 +85,10 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=None)
     parser.add_argument("--tol-sigmas", type=float, default=None)
     parser.add_argument("--no-shadows", action="store_true", help="missing depth stays unknown even where a projector shadow explains it")
+    parser.add_argument("--unbacked", type=int, default=None, help="carve voxels never seen behind the surface once seen free in more than N frames")
+    parser.add_argument("--no-unbacked", action="store_true", help="no such rule (the k / veto rule alone)")
+    parser.add_argument("--no-evidence-hull", action="store_true", help="keep the unseen space no measured surface bounds (reconstruct.evidence)")
+    parser.add_argument("--bound", action="store_true", help="also carve with the true poses, k = 0 and no veto: what the depth allows at most")
     parser.add_argument("--no-export", action="store_true")
     args = parser.parse_args()
     extra = {}
@@ -87,6 +98,12 @@ def main() -> None:
         extra["tol_sigmas"] = args.tol_sigmas
     if args.no_shadows:
         extra["shadows"] = False
+    if args.unbacked is not None:
+        extra["unbacked"] = args.unbacked
+    if args.no_unbacked:
+        extra["unbacked"] = None
+    if args.no_evidence_hull:
+        extra["evidence_hull"] = False
 
     print(f"load before: {os.getloadavg()} on {os.cpu_count()} cores")
     header = f"{'category':8} {'poses':9} {'F@5mm':>6} {'F@1cm':>6} {'extents err mm (x y z)':>24} {'remnant':>8} {'max mm':>7} {'carve':>6} {'mesh':>5} {'total':>6} {'cpu':>5} {'export':>6}"
@@ -98,10 +115,12 @@ def main() -> None:
         truth = load_truth(root)
         sequence = open_sequence(root)
         exact = truth_annotation(truth, truth.ids, 0.0, 0.0, extents_rel=0.1, seed=args.seed)
-        runs = {"true": exact, "1deg+2mm": perturb(exact, 1.0, 0.002, seed=args.seed + 1)}
-        for name, annotation in runs.items():
+        runs = {"true": (exact, extra), "1deg+2mm": (perturb(exact, 1.0, 0.002, seed=args.seed + 1), extra)}
+        if args.bound:
+            runs["bound"] = (exact, {**extra, "k": 0, "veto": None})
+        for name, (annotation, options) in runs.items():
             start, cpu = time.perf_counter(), time.process_time()
-            rec = reconstruct_sequence(sequence, annotation, args.voxel_size, **extra)
+            rec = reconstruct_sequence(sequence, annotation, args.voxel_size, **options)
             total, cpu = time.perf_counter() - start, time.process_time() - cpu
             export_s = float("nan")
             if not args.no_export:

@@ -18,7 +18,7 @@ from sequences.annotation import Annotation, annotation_path
 from sequences.errors import InputError
 from sequences.reader import Sequence
 
-from . import carving, meshing
+from . import carving, evidence, meshing
 from .tight_box import fit_tight_box
 
 #: progress(stage, done, total): called as frames are carved and at each stage.
@@ -91,6 +91,8 @@ def reconstruct_sequence(
     veto: float | None = carving.DEFAULT_VETO,
     settle: int = carving.DEFAULT_SETTLE,
     shadows: bool = carving.DEFAULT_SHADOWS,
+    unbacked: int | None = carving.DEFAULT_UNBACKED,
+    evidence_hull: bool = True,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
 ) -> Reconstruction:
@@ -98,6 +100,8 @@ def reconstruct_sequence(
 
     Uses every frame with a pose (or ``frames``); ``voxel_size`` and ``margin`` (per side, around
     the annotated box) in metres; ``k`` votes threshold (default :func:`carving.choose_k`).
+    ``evidence_hull``: for objects without symmetry, drop the unseen space no measured surface
+    bounds (:mod:`reconstruct.evidence`; needs the veto's counts).
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -112,13 +116,16 @@ def reconstruct_sequence(
     if grid.size > 60_000_000:
         raise InputError(source, f"voxel grid of {grid.shape} is too large: raise --voxel-size or check the extents")
     k_votes = carving.choose_k(len(ids)) if k is None else int(k)
-    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows)
+    result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked)
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
     occupied = result.occupied
     if annotation.symmetry == "y":
         occupied = carving.revolve_occupancy(occupied, grid, carved_share)
+    elif evidence_hull and result.behind_count is not None:
+        # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
+        occupied = evidence.evidence_hull(occupied, result.behind_count)
     timings["symmetry"] = time.perf_counter() - start
     say("mesh", 0, 1)
     start = time.perf_counter()

@@ -91,6 +91,37 @@ def test_veto_keeps_voxels_that_other_frames_see_inside():
     assert not plain.any()
 
 
+def test_unbacked_voxels_seen_free_once_are_carved_and_backed_ones_kept():
+    # four frames from one camera. Left half (x < 0): a cavity that one frame sees into (depth 1.5 m)
+    # while the others see a nearer wall (0.95 m), so no frame sees it just behind a surface. Right
+    # half: an object surface at 0.998 m that three frames see and one outlier frame sees past.
+    camera = Camera(fx=100, fy=100, cx=49.5, cy=49.5, width=100, height=100)
+    grid = carving.make_grid([0.02, 0.02, 0.02], 0.002, margin=0.0)
+    pose = np.eye(4)
+    pose[2, 3] = 1.0
+    outlier = np.full((100, 100), 1.5, np.float32)
+    seen = np.full((100, 100), 0.998, np.float32)
+    seen[:, :50] = 0.95
+    frames = [("outlier", outlier, pose)] + [(f"b{i}", seen, pose) for i in range(3)]
+    x = grid.axis_coordinates(0)
+    z = grid.axis_coordinates(2) + 1.0  # camera depth of each z layer
+    band = (z >= 0.998) & (z <= 0.998 + 2 * carving.depth_sigma(0.998) + np.sqrt(3) * 0.001)  # just behind the surface
+    assert band.sum() == 3 and (z > 0.95 + 0.01).all()  # the wall at 0.95 m backs no voxel
+    result = carving.carve(grid, frames, camera, k=1, veto=0.5, unbacked=0)
+    np.testing.assert_array_equal(result.free_count[x < 0].max(), 1)  # the cavity: free in one frame only
+    occupied = result.occupied
+    assert not occupied[x < 0].any()  # one free vote and no evidence of the object: carved
+    right = occupied[x > 0]
+    np.testing.assert_array_equal(right.all(axis=(0, 1)), band)  # free once but seen inside three times: kept
+    np.testing.assert_array_equal(right.any(axis=(0, 1)), band)  # deeper, free once and never backed: carved
+    # without the rule, k = 1 keeps every voxel seen free only once: the cavity, the deep layers and
+    # those within the free tolerance in front of the surface
+    plain = carving.carve(grid, frames, camera, k=1, veto=0.5, unbacked=None).occupied
+    assert plain[x < 0].all()
+    tol = 2 * carving.depth_sigma(0.998) + np.sqrt(3) * 0.001
+    np.testing.assert_array_equal(plain[x > 0].all(axis=(0, 1)), z >= 0.998 - tol)
+
+
 def _shadowed_row(f=525.0, cx=319.5, baseline=0.075, d_near=0.6, d_far=1.5, edge_x=0.0, width=640):
     """One image row by exact geometry: a wall at ``d_far``, a foreground half-plane X >= ``edge_x`` at
     ``d_near``, the projector at X = ``baseline``. Returns (true depth, measured depth: 0 where the
@@ -342,7 +373,9 @@ def test_synthetic_held_mug_surface(synthetic_mug):
     truth, rec, mesh = synthetic_mug
     assert rec.mesh.is_watertight
     assert fscore(mesh, truth.mesh, 0.005) >= 0.9
-    assert fscore(mesh, truth.mesh, 0.01) >= 0.95  # the lower half of the mug's inside is never seen (measured 0.97, generator v4)
+    # the lower inside by the near wall is never seen free; the evidence hull drops it (no frame saw a
+    # surface there). Carving alone measured 0.97 (generator v4, seed 2)
+    assert fscore(mesh, truth.mesh, 0.01) >= 0.98
 
 
 @pytest.mark.slow  # the palm's patch by the handle is seen free only through projector shadows (carve(shadows=True))
@@ -352,7 +385,6 @@ def test_synthetic_held_mug_box_and_no_hand_remnants(synthetic_mug):
 
     samples = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
     distance = cKDTree(trimesh.sample.sample_surface(truth.mesh, 20000, seed=1)[0]).query(samples)[0]
-    far = samples[distance > 0.01]
-    # nothing farther than 1 cm from the true surface outside the true box (the unseen cavity may stay)
-    assert (np.abs(far) <= truth.extents / 2 + 0.002).all()
+    # nothing farther than 1 cm from the true surface: no hand remnant, no filled inside
+    assert np.mean(distance > 0.01) < 0.002
     np.testing.assert_allclose(rec.extents, truth.extents, atol=0.003)
