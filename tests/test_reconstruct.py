@@ -314,11 +314,14 @@ def test_cup_cavity_is_carved(cup_scene):
     rec = reconstruct_sequence(sequence, annotation)
     mesh = rec.mesh.copy()
     mesh.apply_translation(rec.centre_shift)
-    assert fscore(mesh, cup_scene.mesh, 0.005) >= 0.9
-    # 40 frames at 320x240 see into the cavity from a few frames only (measured x1.4-1.5; at 100
-    # frames 640x480 x1.0-1.1); a solid cylinder would be x3.1
-    assert 0.8 < mesh.volume / cup_scene.mesh.volume < 1.7
+    # 40 frames at 320x240 see into the cavity from a few frames only: carving alone leaves its
+    # lower part by the near wall (measured x1.5 the volume, F@5mm 0.91; a solid cylinder would be
+    # x3.1); no frame sees a surface there, so the evidence hull drops it (measured x1.13, F@5mm 1.0)
+    assert fscore(mesh, cup_scene.mesh, 0.005) >= 0.98
+    assert 0.9 < mesh.volume / cup_scene.mesh.volume < 1.25
     np.testing.assert_allclose(rec.extents, cup_scene.extents, atol=0.003)
+    carved = reconstruct_sequence(sequence, annotation, evidence_hull=False)
+    assert carved.mesh.volume / cup_scene.mesh.volume > 1.35
 
 
 def test_symmetry_fills_the_sides_never_seen(tmp_path):
