@@ -12,8 +12,9 @@ perturbed by exactly 1 degree (random axis) and 2 mm (random direction). The ann
 are off by up to 10 % (the carving margin must cover that). With --bound a third run, "bound",
 carves with the true poses every voxel seen free in even one frame (k = 0, no veto, hence no
 evidence hull): no rule on free-space votes can carve more, so what it leaves (a cavity or a
-hand-covered patch never seen free) is missing from the data, not from the rule. --no-evidence-hull
-keeps the unseen space that no measured surface bounds (reconstruct.evidence). Printed per run:
+hand-covered patch never seen free) is missing from the free-space evidence, not from the rule.
+The evidence hull (reconstruct.evidence; objects without symmetry) goes further: it also drops
+unseen space that no measured surface bounds; --no-evidence-hull keeps it. Printed per run:
 
 - F@5mm, F@1cm: F-score of the mesh against the true mesh (area-weighted surface samples, cKDTree);
 - extents error: the tight box's extents minus the true extents (mm, x y z);
