@@ -83,10 +83,9 @@ def fscore(points_gt, points_pred, threshold: float = 0.01) -> FScore:
     """F-score (with precision and recall) of predicted points against ground-truth points at ``threshold`` m."""
     if not np.isfinite(threshold) or threshold <= 0:
         raise ValueError(f"fscore: threshold must be a positive distance in metres, got {threshold}")
+    from evaluate.metrics.sampling import ShapeIndex  # here: sampling builds on this module
+
+    # Only which distances fall below the threshold matters: ShapeIndex.hits decides most points on a
+    # grid and bounds the KD-tree queries of the rest, with exactly the result of the distance test.
     gt, pred = points_array(points_gt, "points_gt"), points_array(points_pred, "points_pred")
-    # Distances beyond the threshold are irrelevant: the bound prunes the tree search.  A slightly larger
-    # bound keeps the strict "< threshold" test exact.
-    bound = threshold * (1 + 1e-9)
-    d_gt = nearest_distances(gt, cKDTree(pred), bound)
-    d_pred = nearest_distances(pred, cKDTree(gt), bound)
-    return fscore_from_distances(d_gt, d_pred, threshold)
+    return fscore_from_hits(*ShapeIndex(gt).hits(pred, threshold))
