@@ -115,3 +115,20 @@ def test_smoothing_of_a_symmetric_object_follows_its_axis_whatever_the_spin():
     # the spin is left as it was: the output differs from the input by a tilt only (no rotation about y)
     for a, b in zip(out, posed):
         assert abs(Rotation.from_matrix(b[:3, :3].T @ a[:3, :3]).as_rotvec()[1]) < 1e-3
+
+
+def test_a_placed_box_sets_a_direction_no_frame_observes():
+    truth = _rotating_poses(20)
+    weak_y = np.diag([1e8, 0.0, 1e8, 1e10, 1e10, 1e10])  # no frame sees the spin about y
+    spun = []
+    for T in truth:  # every frame spun 2 deg off about its y, smoothly (the smoothness alone cannot tell)
+        P = T.copy()
+        P[:3, :3] = P[:3, :3] @ Rotation.from_rotvec([0, np.radians(2.0), 0]).as_matrix()
+        spun.append(P)
+    # a box placed on frame 5 at the true pose, with a person's confidence (1 deg, 2 mm per axis)
+    D = np.linalg.inv(spun[5]) @ truth[5]
+    target = np.concatenate([Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]])
+    info = np.diag([1 / np.radians(1.0) ** 2] * 3 + [1 / 0.002**2] * 3)
+    out = smooth_poses(spun, [weak_y] * len(spun), np.radians(0.5), 0.0005, priors={5: (target, info)})
+    errors = [np.degrees(Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).magnitude()) for a, b in zip(out, truth)]
+    assert max(errors) < 0.05, np.round(errors, 3)

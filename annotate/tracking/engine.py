@@ -152,7 +152,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
     if config.smoothing:
-        results = smooth_refined(tracker, results, anchors)
+        results = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 else None)
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}

@@ -12,13 +12,16 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from evaluate.geometry import invert
 
 from .freespace import free_space_votes
 from .smooth import registration_information, smooth_poses
 from .model import ObjectModel
 from .propagate import predict
 from .quality import pose_difference
-from .reconcile import interpolate
+from .reconcile import common_correction, interpolate
 from .symmetry import closest_about_y
 from .tracker import FrameResult, Tracker
 
@@ -184,8 +187,18 @@ def _smooth_with_neighbours(results: dict[str, FrameResult], order: list[str], f
     return deg <= config.max_chain_disagreement_deg and metres <= config.max_chain_disagreement_m
 
 
-def smooth_refined(tracker: Tracker, results: dict[str, FrameResult], anchors: list[str] = ()) -> dict[str, FrameResult]:
+def smooth_refined(
+    tracker: Tracker,
+    results: dict[str, FrameResult],
+    anchors: list[str] = (),
+    placed: dict[str, np.ndarray] | None = None,
+) -> dict[str, FrameResult]:
     """The refined poses (``results`` in frame order) smoothed where their registration is weak (smooth.py).
+
+    With ``placed`` (manual frame -> placed 4x4 pose), each manual frame also pulls its pose toward
+    its placed box, brought into the tracked poses' object frame by the common correction, with
+    the confidence of a hand placement (``manual_rotation_sigma_deg``, ``manual_translation_sigma``):
+    the only evidence on a direction the geometry leaves weak over a whole stretch of frames.
 
     Each frame's information comes from its points at its pose against the model of the trusted
     frames; a frame whose registration failed, fits poorly or whose chains disagree gives none
@@ -207,11 +220,24 @@ def smooth_refined(tracker: Tracker, results: dict[str, FrameResult], anchors: l
         points, _ = tracker.crop(frame_id, pose, margin=0.0)
         local = (points - pose[:3, 3]) @ pose[:3, :3]
         information.append(registration_information(local, target, config.registration.fine_distance, config.information_sigma))
+    priors = {}
+    placed = {m: P for m, P in (placed or {}).items() if m in results and results[m].ok}
+    if placed:
+        correction = np.linalg.inv(common_correction({m: results[m].pose for m in placed}, placed, tracker.symmetric))
+        info = np.diag([1 / np.radians(config.manual_rotation_sigma_deg) ** 2] * 3 + [1 / config.manual_translation_sigma**2] * 3)
+        for m, P in placed.items():
+            T = results[m].pose
+            D = invert(T) @ P @ correction  # T exp(d) = placed, in the tracked object frame
+            if tracker.symmetric:
+                D[:3, :3] = closest_about_y(D[:3, :3], np.eye(3))
+            target = np.concatenate([Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]])
+            priors[order.index(m)] = (target, info)
     poses = smooth_poses(
         [results[f].pose for f in order],
         information,
         np.radians(config.rotation_acceleration_deg),
         config.translation_acceleration,
         free_y=tracker.symmetric,
+        priors=priors,
     )
     return {f: FrameResult(p, results[f].ok, results[f].figures) for f, p in zip(order, poses)}

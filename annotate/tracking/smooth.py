@@ -13,7 +13,8 @@ divided by the point noise squared). The correction ``d_i`` of every frame minim
 
     sum_i d_i' H_i d_i  +  sum_i |rotational acceleration_i|^2 / s_r^2 + |acceleration of the centre_i|^2 / s_t^2
 
-linearised about the current poses: one sparse linear solve (6 unknowns per frame). Where ``H_i``
+linearised about the current poses: a banded linear solve (6 unknowns per frame), repeated a
+few times about the corrected poses. Where ``H_i``
 is strong the pose stays; where it is weak the acceleration terms interpolate from the neighbours.
 """
 
@@ -54,6 +55,8 @@ def smooth_poses(
     rotation_acceleration: float,
     translation_acceleration: float,
     free_y: bool = False,
+    priors: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    iterations: int = 3,
 ) -> list[np.ndarray]:
     """Consecutive poses (4x4 object to camera) corrected by the least-squares trade of registration and smoothness.
 
@@ -62,19 +65,41 @@ def smooth_poses(
     squared) are the expected accelerations. ``free_y`` (symmetry y) leaves the rotation about the
     object's y axis as it is (it is unobservable and kept consistent elsewhere) and smooths the
     axis direction instead of the whole rotation, so an arbitrary spin does not count as motion.
+    ``priors``: frame index -> (target correction d (6,), information (6x6)), e.g. where a person
+    placed the box: adds (d_i - target)' info (d_i - target).
     """
     n = len(poses)
     if n < 3:
         return [p.copy() for p in poses]
+    dofs = [0, 2, 3, 4, 5] if free_y else [0, 1, 2, 3, 4, 5]
+    sel = np.eye(6)[dofs]  # 6 -> k reduction
+    current = [np.asarray(p, dtype=np.float64).copy() for p in poses]
+    applied = np.zeros((n, 6))  # the correction so far, per frame (additive to first order)
+    for _ in range(iterations):  # relinearised: a frame turns a few degrees per frame
+        delta = _solve_step(current, information, rotation_acceleration, translation_acceleration, free_y, priors or {}, applied, sel)
+        for i in range(n):
+            R, t = current[i][:3, :3].copy(), current[i][:3, 3].copy()
+            current[i][:3, :3] = R @ Rotation.from_rotvec(delta[i, :3]).as_matrix()
+            current[i][:3, 3] = t + R @ delta[i, 3:]
+        applied += delta
+        if np.abs(delta).max() < 1e-7:
+            break
+    return current
+
+
+def _solve_step(poses, information, rotation_acceleration, translation_acceleration, free_y, priors, applied, sel) -> np.ndarray:
+    """One Gauss-Newton step (n, 6) about ``poses``, whose corrections so far are ``applied`` (n, 6)."""
+    n, k = len(poses), sel.shape[0]
     R = np.stack([p[:3, :3] for p in poses])
     t = np.stack([p[:3, 3] for p in poses])
-    dofs = [0, 2, 3, 4, 5] if free_y else [0, 1, 2, 3, 4, 5]
-    k = len(dofs)
     A = np.zeros((n * k, n * k))
     b = np.zeros(n * k)
-    sel = np.eye(6)[dofs]  # 6 -> k reduction
     for i in range(n):
         A[i * k : (i + 1) * k, i * k : (i + 1) * k] += sel @ information[i] @ sel.T
+        b[i * k : (i + 1) * k] += sel @ information[i] @ applied[i]
+    for i, (target, info) in priors.items():
+        A[i * k : (i + 1) * k, i * k : (i + 1) * k] += sel @ info @ sel.T
+        b[i * k : (i + 1) * k] += sel @ info @ (applied[i] - np.asarray(target, dtype=np.float64))
     # rotational acceleration, body frame: phi_i = log(R_i' R_(i+1)); phi_i(d) ~ phi_i + Q_i w_(i+1) - w_i
     phi = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec()
     Q = np.einsum("nji,njk->nik", R[:-1], R[1:])
@@ -102,19 +127,14 @@ def smooth_poses(
         residual = t[i + 1] - 2 * t[i] + t[i - 1]
         _accumulate(A, b, wt * rows, wt * residual, i - 1, sel, k)
     # banded symmetric positive (semi)definite system: a tiny ridge keeps an unconstrained frame in place
-    A[np.diag_indices_from(A)] += 1e-9 * max(1.0, np.abs(A).max())
+    # (a millionth of the smoothness weight: far below any evidence, so it never drags a weak direction back)
+    A[np.diag_indices_from(A)] += 1e-6 * min(wr, wt) ** 2
     bandwidth = 3 * k - 1
     banded = np.zeros((bandwidth + 1, n * k))
     for d in range(bandwidth + 1):
         banded[bandwidth - d, d:] = np.diagonal(A, d)
     delta = solveh_banded(banded, -b).reshape(n, k) @ sel
-    out = []
-    for i in range(n):
-        pose = poses[i].copy()
-        pose[:3, :3] = R[i] @ Rotation.from_rotvec(delta[i, :3]).as_matrix()
-        pose[:3, 3] = t[i] + R[i] @ delta[i, 3:]
-        out.append(pose)
-    return out
+    return delta
 
 
 def _accumulate(A: np.ndarray, b: np.ndarray, J: np.ndarray, r: np.ndarray, first: int, sel: np.ndarray, k: int) -> None:
