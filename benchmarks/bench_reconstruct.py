@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_reconstruct.py [--root /tmp/synth] [--categories bottle bowl mug can]
         [--frames 100] [--seed 0] [--voxel-size 0.002] [--k K] [--tol-sigmas S] [--no-shadows]
-        [--unbacked N | --no-unbacked] [--no-evidence-hull] [--bound]
+        [--unbacked N | --no-unbacked] [--evidence-hull | --no-evidence-hull] [--bound]
 
 Use one --root per --seed (a sequence generated there is reused whatever the seed).
 
@@ -13,8 +13,9 @@ are off by up to 10 % (the carving margin must cover that). With --bound a third
 carves with the true poses every voxel seen free in even one frame (k = 0, no veto, hence no
 evidence hull): no rule on free-space votes can carve more, so what it leaves (a cavity or a
 hand-covered patch never seen free) is missing from the free-space evidence, not from the rule.
-The evidence hull (reconstruct.evidence; objects without symmetry) goes further: it also drops
-unseen space that no measured surface bounds; --no-evidence-hull keeps it. Printed per run:
+The evidence hull (reconstruct.evidence; by default for mugs only) goes further: it also drops
+unseen space that no measured surface bounds; --evidence-hull uses it for every object without
+symmetry, --no-evidence-hull for none. Printed per run:
 
 - F@5mm, F@1cm: F-score of the mesh against the true mesh (area-weighted surface samples, cKDTree);
 - extents error: the tight box's extents minus the true extents (mm, x y z);
@@ -88,7 +89,8 @@ def main() -> None:
     parser.add_argument("--no-shadows", action="store_true", help="missing depth stays unknown even where a projector shadow explains it")
     parser.add_argument("--unbacked", type=int, default=None, help="carve voxels never seen behind the surface once seen free in more than N frames")
     parser.add_argument("--no-unbacked", action="store_true", help="no such rule (the k / veto rule alone)")
-    parser.add_argument("--no-evidence-hull", action="store_true", help="keep the unseen space no measured surface bounds (reconstruct.evidence)")
+    parser.add_argument("--evidence-hull", action="store_true", help="drop the unseen space no measured surface bounds for every object without symmetry (reconstruct.evidence)")
+    parser.add_argument("--no-evidence-hull", action="store_true", help="keep the unseen space no measured surface bounds for every object")
     parser.add_argument("--bound", action="store_true", help="also carve with the true poses, k = 0 and no veto: what the depth allows at most")
     parser.add_argument("--no-export", action="store_true")
     args = parser.parse_args()
@@ -103,6 +105,8 @@ def main() -> None:
         extra["unbacked"] = args.unbacked
     if args.no_unbacked:
         extra["unbacked"] = None
+    if args.evidence_hull:
+        extra["evidence_hull"] = True
     if args.no_evidence_hull:
         extra["evidence_hull"] = False
 

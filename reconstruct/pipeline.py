@@ -92,7 +92,7 @@ def reconstruct_sequence(
     settle: int = carving.DEFAULT_SETTLE,
     shadows: bool = carving.DEFAULT_SHADOWS,
     unbacked: int | None = carving.DEFAULT_UNBACKED,
-    evidence_hull: bool = True,
+    evidence_hull: bool | None = None,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
 ) -> Reconstruction:
@@ -100,8 +100,8 @@ def reconstruct_sequence(
 
     Uses every frame with a pose (or ``frames``); ``voxel_size`` and ``margin`` (per side, around
     the annotated box) in metres; ``k`` votes threshold (default :func:`carving.choose_k`).
-    ``evidence_hull``: for objects without symmetry, drop the unseen space no measured surface
-    bounds (:mod:`reconstruct.evidence`; needs the veto's counts).
+    ``evidence_hull``: drop the unseen space no measured surface bounds (:mod:`reconstruct.evidence`;
+    needs the veto's counts; never for symmetry y); None: for open containers (mugs) only.
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -123,7 +123,7 @@ def reconstruct_sequence(
     occupied = result.occupied
     if annotation.symmetry == "y":
         occupied = carving.revolve_occupancy(occupied, grid, carved_share)
-    elif evidence_hull and result.behind_count is not None:
+    elif result.behind_count is not None and (evidence.applies(annotation.category, annotation.symmetry) if evidence_hull is None else evidence_hull):
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, result.behind_count)
     timings["symmetry"] = time.perf_counter() - start

@@ -320,8 +320,11 @@ def test_cup_cavity_is_carved(cup_scene):
     assert fscore(mesh, cup_scene.mesh, 0.005) >= 0.98
     assert 0.9 < mesh.volume / cup_scene.mesh.volume < 1.25
     np.testing.assert_allclose(rec.extents, cup_scene.extents, atol=0.003)
-    carved = reconstruct_sequence(sequence, annotation, evidence_hull=False)
+    # the same scene called a camera (not an open container): no evidence hull by default
+    annotation.category = "camera"
+    carved = reconstruct_sequence(sequence, annotation)
     assert carved.mesh.volume / cup_scene.mesh.volume > 1.35
+    assert reconstruct_sequence(sequence, annotation, evidence_hull=True).mesh.volume == pytest.approx(mesh.volume, rel=1e-6)
 
 
 def test_symmetry_fills_the_sides_never_seen(tmp_path):
