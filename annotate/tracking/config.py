@@ -14,6 +14,7 @@ class TrackingConfig:
     backend: str = "point_to_plane"  #: one of registration.BACKENDS (chosen by benchmarks/bench_tracking.py)
     voxel_size: float = 0.004  #: model and frame downsampling (at least; large objects use max extent / voxels_across)
     voxels_across: int = 60  #: a large object gets a coarser voxel so its point count (and time) stays bounded
+    max_points: int = 2500  #: a frame's points registered at most (every k-th beyond; 0: all)
     stride: int = 2  #: pixel subsampling when reading a frame's points
     crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
     extents_slack: float = 0.08  #: the box is grown by this share too (hand-placed extents are off by up to ~8%)
