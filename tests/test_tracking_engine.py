@@ -81,6 +81,18 @@ def test_manual_frames_keep_their_box_and_others_carry_quality(scene, tracked):
     assert set(annotation.frames) == set(MANUAL)
 
 
+@pytest.mark.slow
+def test_tracking_twice_gives_the_same_poses_and_restores_open3d_threads(scene, tracked):
+    import open3d as o3d
+
+    root, _, annotation = scene
+    before = o3d.utility.get_max_threads()
+    again = track_sequence(open_sequence(root), annotation)
+    assert o3d.utility.get_max_threads() == before
+    for frame_id, pose in tracked.frames.items():
+        assert np.array_equal(pose.matrix, again.frames[frame_id].matrix), frame_id
+
+
 def test_refine_frame_pulls_a_perturbed_box_onto_the_object(scene, tracked):
     root, truth, _ = scene
     document = tracked.copy()
