@@ -38,7 +38,7 @@ from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
-from .refine import build_model, min_hits_for, recheck_disagreements, refine_all, smooth_refined
+from .refine import build_model, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, smooth_refined
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
@@ -153,6 +153,13 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
     if config.smoothing:
         results = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 else None)
+    # before the first and after the last manual frame only one chain ran: a second one, on the whole model
+    ends = []
+    if a_idx[0] > 0 and a_idx[0] + 1 < len(ids):
+        ends.append(ids[a_idx[0] + 1 :: -1])
+    if a_idx[-1] < len(ids) - 1 and a_idx[-1] > 0:
+        ends.append(ids[a_idx[-1] - 1 :])
+    results = recheck_single_chains(tracker, results, ends, anchors)
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}

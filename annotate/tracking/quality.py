@@ -5,7 +5,8 @@ Figures (stored as extra keys on each tracked frame of the document):
 - ``inlier_rmse``: RMS distance of those inliers, metres;
 - ``in_box``: share of the points near the box (crop with margin) that lie inside the box;
 - ``chain_disagreement_deg`` / ``chain_disagreement_m``: how far apart the forward and the
-  backward chain put the frame (only between two manual frames);
+  backward chain put the frame between two manual frames; outside their span, how far a second
+  chain on the model of all frames lands from the final pose (refine.recheck_single_chains);
 - for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
   is from the pose the rest of the sequence agrees on.
 """
@@ -51,9 +52,9 @@ def flag_reasons(figures: dict, config) -> list[str]:
     if "in_box" in figures and figures["in_box"] < config.min_in_box:
         reasons.append(f"only {figures['in_box']:.0%} of the points near the box are inside it")
     if figures.get("chain_disagreement_deg", 0.0) > config.max_chain_disagreement_deg:
-        reasons.append(f"forward and backward tracking disagree by {figures['chain_disagreement_deg']:.1f} deg")
+        reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_deg']:.1f} deg")
     if figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m:
-        reasons.append(f"forward and backward tracking disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
+        reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
         reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose")
     if figures.get("manual_correction_m", 0.0) > config.max_manual_correction_m:
