@@ -71,12 +71,18 @@ def test_carving_a_single_frame_keeps_only_the_shadow():
     assert occupied[:, :, z > 0].all()  # behind the wall: unknown, kept
 
 
-def test_veto_keeps_voxels_that_other_frames_see_inside():
-    # one frame sees past everything (a pose error, say); three see a surface at 0.998 m
+def _cube_one_metre_ahead():
+    """A 100x100 px camera (f = 100 px), a 2 cm grid of 2 mm voxels and the pose putting it 1 m ahead."""
     camera = Camera(fx=100, fy=100, cx=49.5, cy=49.5, width=100, height=100)
     grid = carving.make_grid([0.02, 0.02, 0.02], 0.002, margin=0.0)
     pose = np.eye(4)
     pose[2, 3] = 1.0
+    return camera, grid, pose
+
+
+def test_veto_keeps_voxels_that_other_frames_see_inside():
+    # one frame sees past everything (a pose error, say); three see a surface at 0.998 m
+    camera, grid, pose = _cube_one_metre_ahead()
     far = np.full((100, 100), 1.5, np.float32)
     surface = np.full((100, 100), 0.998, np.float32)
     frames = [("a", far, pose)] + [(f"b{i}", surface, pose) for i in range(3)]
@@ -95,10 +101,7 @@ def test_unbacked_voxels_seen_free_once_are_carved_and_backed_ones_kept():
     # four frames from one camera. Left half (x < 0): a cavity that one frame sees into (depth 1.5 m)
     # while the others see a nearer wall (0.95 m), so no frame sees it just behind a surface. Right
     # half: an object surface at 0.998 m that three frames see and one outlier frame sees past.
-    camera = Camera(fx=100, fy=100, cx=49.5, cy=49.5, width=100, height=100)
-    grid = carving.make_grid([0.02, 0.02, 0.02], 0.002, margin=0.0)
-    pose = np.eye(4)
-    pose[2, 3] = 1.0
+    camera, grid, pose = _cube_one_metre_ahead()
     outlier = np.full((100, 100), 1.5, np.float32)
     seen = np.full((100, 100), 0.998, np.float32)
     seen[:, :50] = 0.95
