@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evaluate.metrics.precision import threshold_label
 from sequences.atomic import temporary_sibling, write_text_atomic
 
 #: Per-sample error columns: (name, unit or description).
@@ -50,16 +51,8 @@ class ThresholdPrecision:
 
     @property
     def label(self) -> str:
-        parts = []
-        if self.degrees is not None:
-            parts.append(f"{self.degrees:g}°")
-        if self.position is not None:
-            parts.append(f"{self.position * 100:g} cm")
-        if self.iou is not None:
-            parts.append(f"IoU ≥ {self.iou:g}")
-        if self.fscore is not None:
-            parts.append(f"F ≥ {self.fscore:g}")
-        return ", ".join(parts)
+        """The tuple's name in tables, e.g. '10°, 2 cm, F ≥ 0.6'."""
+        return threshold_label(self.position, self.degrees, self.iou, self.fscore, ", ", " ≥ ")
 
 
 @dataclass

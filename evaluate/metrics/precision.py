@@ -21,6 +21,21 @@ import numpy as np
 DEFAULT_FSCORE_DISTANCE = 0.01
 
 
+def threshold_label(position: float | None, degrees: float | None, iou: float | None, fscore: float | None,
+                    separator: str = " ", at_least: str = "≥") -> str:
+    """A threshold tuple's name from its used parts (position in m, shown in cm), e.g. '10° 2 cm F≥0.6'."""
+    parts = []
+    if degrees is not None:
+        parts.append(f"{degrees:g}°")
+    if position is not None:
+        parts.append(f"{position * 100:g} cm")
+    if iou is not None:
+        parts.append(f"IoU{at_least}{iou:g}")
+    if fscore is not None:
+        parts.append(f"F{at_least}{fscore:g}")
+    return separator.join(parts)
+
+
 @dataclass(frozen=True)
 class Threshold:
     """One threshold tuple; ``None`` means the criterion is not used."""
@@ -38,16 +53,7 @@ class Threshold:
 
     def label(self) -> str:
         """Short human-readable name, e.g. '10° 2 cm F≥0.6'."""
-        parts = []
-        if self.degrees is not None:
-            parts.append(f"{self.degrees:g}°")
-        if self.position is not None:
-            parts.append(f"{self.position * 100:g} cm")
-        if self.iou is not None:
-            parts.append(f"IoU≥{self.iou:g}")
-        if self.fscore is not None:
-            parts.append(f"F≥{self.fscore:g}")
-        return " ".join(parts) if parts else "any"
+        return threshold_label(self.position, self.degrees, self.iou, self.fscore) or "any"
 
     def as_dict(self) -> dict:
         return {"position": self.position, "degrees": self.degrees, "iou": self.iou, "fscore": self.fscore}
