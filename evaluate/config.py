@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 
 from evaluate import metrics
+from sequences.documents import load_document
 from sequences.errors import InputError
 
 THRESHOLD_KEYS = ("position", "degrees", "iou", "fscore")
@@ -116,14 +116,7 @@ def _path(base: Path | None, value: Any, path, key: str) -> Path:
 def read_config_file(path: str | Path) -> dict:
     """The YAML file as a validated dict of :data:`KEYS` (paths resolved against its folder)."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError as error:
-        raise InputError(path, "config file not found") from error
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(path, f"cannot read config ({error.__class__.__name__})") from error
-    except yaml.YAMLError as error:
-        raise InputError(path, f"malformed YAML: {' '.join(str(error).split())}") from error
+    data = load_document(path, "config file", as_yaml=True)
     if data is None:
         data = {}
     if not isinstance(data, dict):

@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from .atomic import write_text_atomic
+from .documents import load_document
 from .errors import InputError
 
 CATEGORIES = ("bottle", "bowl", "mug", "can", "camera", "laptop", "other")
@@ -184,16 +185,9 @@ def load_annotation(path: str | Path, default_sequence: str | None = None) -> An
     path = Path(path)
     if default_sequence is None:
         default_sequence = path.resolve().parent.name
-    try:
-        text = path.read_text()
-    except FileNotFoundError as error:
-        raise InputError(path, "annotation document not found") from error
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(path, f"cannot read annotation document ({error.__class__.__name__})") from error
-    try:
-        data = yaml.load(text, Loader=_KeysAsTextLoader)  # noqa: S506 (a SafeLoader)
-    except yaml.YAMLError as error:
-        raise InputError(path, f"malformed YAML: {' '.join(str(error).split())}") from error
+    # a SafeLoader that reads every key as text (frame ids like 0000012 stay strings); parsed as YAML
+    # whatever the file's suffix, since --annotation may name any file
+    data = load_document(path, "annotation document", loader=_KeysAsTextLoader, as_yaml=True)
     return annotation_from_dict(data, path, default_sequence)
 
 

@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
+from .documents import load_document
 from .errors import InputError
 
 
@@ -83,12 +83,7 @@ class Camera:
     def from_yaml(cls, path: str | Path) -> "Camera":
         """Read ``camera.yaml`` (fx, fy, cx, cy, width, height, depth_scale; any subset overrides the defaults)."""
         path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except (OSError, UnicodeDecodeError) as error:
-            raise InputError(path, f"cannot read camera file ({error.__class__.__name__})") from error
-        except yaml.YAMLError as error:
-            raise InputError(path, f"malformed YAML: {str(error).splitlines()[0]}") from error
+        data = load_document(path, "camera file", as_yaml=True)
         if data is None:
             data = {}
         if not isinstance(data, dict):

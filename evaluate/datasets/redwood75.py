@@ -16,7 +16,6 @@ sequence folder overrides Redwood's default camera.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 from evaluate.geometry import RAW_FROM_SHAPENET, SHAPENET_FROM_RAW, quat_to_matrix, matrix_to_quat, raw_to_shapenet_extents
 from sequences.annotation import default_symmetry
 from sequences.camera import Camera
+from sequences.documents import load_document
 from sequences.errors import InputError
 
 from .base import Dataset, load_mesh_file
@@ -65,12 +65,7 @@ class Redwood75Dataset(Dataset):
         path = root / ANNOTATIONS
         if not path.is_file():
             raise InputError(path, "not found (a REDWOOD75-format dataset folder holds annotations.json and the meshes)")
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError) as error:
-            raise InputError(path, f"cannot read ({error.__class__.__name__})") from error
-        except json.JSONDecodeError as error:
-            raise InputError(path, f"malformed JSON: {error}") from error
+        data = load_document(path, "annotations file", as_yaml=False)
         if not isinstance(data, dict) or not data:
             raise InputError(path, "expected a non-empty mapping {sequence: {category, mesh, scale, pose_anns}}")
         frames_root = None if frames is None else Path(frames)
