@@ -62,16 +62,21 @@ class FrameStore:
             u0, u1 = int(np.clip(np.floor(u.min()), 0, w)), int(np.clip(np.ceil(u.max()) + 1, 0, w))
             v0, v1 = int(np.clip(np.floor(v.min()), 0, h)), int(np.clip(np.ceil(v.max()) + 1, 0, h))
         patch = depth[v0:v1, u0:u1]
-        vv, uu = np.nonzero(patch > 0)
+        # a point inside the box lies within the depth range of its corners: the background behind a
+        # large box (a laptop's rectangle is mostly table) is dropped before any back-projection
+        near, far = max(corners[:, 2].min() - 1e-6, 1e-6), corners[:, 2].max() + 1e-6  # 1 um: rounding of the box test
+        vv, uu = np.nonzero((patch >= near) & (patch <= far))
         z = patch[vv, uu].astype(np.float64)
         points = np.stack([((uu + u0) * s - camera.cx) / camera.fx * z, ((vv + v0) * s - camera.cy) / camera.fy * z, z], axis=1)
-        colors = color[v0:v1, u0:u1][vv, uu].astype(np.float64) if color is not None else np.zeros_like(points)
-        local = (points - pose[:3, 3]) @ pose[:3, :3]
-        keep = np.all(np.abs(local) <= half, axis=1)
-        points, colors = points[keep], colors[keep]
+        local = np.abs((points - pose[:3, 3]) @ pose[:3, :3])
+        keep = (local[:, 0] <= half[0]) & (local[:, 1] <= half[1]) & (local[:, 2] <= half[2])
+        points = points[keep]
+        colors = color[v0:v1, u0:u1][vv[keep], uu[keep]].astype(np.float64) if color is not None else None
         if voxel and len(points):
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-            cloud.colors = o3d.utility.Vector3dVector(colors)
+            if colors is not None:
+                cloud.colors = o3d.utility.Vector3dVector(colors)
             cloud = cloud.voxel_down_sample(voxel)
-            points, colors = np.asarray(cloud.points), np.asarray(cloud.colors)
-        return points, colors
+            points = np.asarray(cloud.points)
+            colors = np.asarray(cloud.colors) if colors is not None else None
+        return points, (colors if colors is not None else np.zeros_like(points))

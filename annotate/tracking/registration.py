@@ -60,6 +60,15 @@ class ModelTarget:
             # normals from ~4 voxels around each point: object-scale surface patches
             self.cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * self.voxel_size, max_nn=16))
         self._kiss_map = None
+        self._tree = None
+
+    def tree(self):
+        """scipy's KD-tree of the model points, built once (smoothing queries every frame against one target)."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points)
+        return self._tree
 
     def __len__(self) -> int:
         return len(self.points)
@@ -116,23 +125,26 @@ def _source_cloud(points: np.ndarray, colors: np.ndarray | None) -> o3d.geometry
     return cloud
 
 
-def _icp_open3d(backend: str, source, target: ModelTarget, init: np.ndarray, params: RegistrationParams, voxel: float) -> np.ndarray:
+def _icp_open3d(backend: str, source, target: ModelTarget, init: np.ndarray, params: RegistrationParams, voxel: float) -> tuple[np.ndarray, float, float]:
+    """The transform, and the fitness and inlier RMSE at it within ``params.fine_distance`` (Open3D's
+    result of the last stage: the same figures as evaluate_registration at that distance)."""
     reg = o3d.pipelines.registration
     criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5, max_iteration=params.iterations)
     T = init
     for distance in (params.max_distance, params.fine_distance):
         if backend == "point_to_plane":
             estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max(params.kernel, distance / 2)))
-            T = reg.registration_icp(source, target.cloud, distance, T, estimation, criteria).transformation
+            result = reg.registration_icp(source, target.cloud, distance, T, estimation, criteria)
         elif backend == "colored":
             estimation = reg.TransformationEstimationForColoredICP(lambda_geometric=0.968, kernel=reg.TukeyLoss(k=max(params.kernel, distance / 2)))
-            T = reg.registration_colored_icp(source, target.cloud, distance, T, estimation, criteria).transformation
+            result = reg.registration_colored_icp(source, target.cloud, distance, T, estimation, criteria)
         elif backend == "generalized":
             estimation = reg.TransformationEstimationForGeneralizedICP(epsilon=1e-3, kernel=reg.TukeyLoss(k=max(params.kernel, distance / 2)))
-            T = reg.registration_generalized_icp(source, target.cloud, distance, T, estimation, criteria).transformation
+            result = reg.registration_generalized_icp(source, target.cloud, distance, T, estimation, criteria)
         else:
             raise ValueError(backend)
-    return np.asarray(T)
+        T = result.transformation
+    return np.asarray(T), float(result.fitness), float(result.inlier_rmse)
 
 
 def _icp_kiss(points: np.ndarray, target: ModelTarget, init: np.ndarray, params: RegistrationParams) -> np.ndarray:
@@ -188,16 +200,19 @@ def register(
     if _normals_needed(backend) and not target.cloud.has_normals():
         return fail("model has no normals")
     source = _source_cloud(points, colors)
+    figures = None
     try:
         if backend == "kiss":
             T = _icp_kiss(points, target, init, params)
         else:
-            T = _icp_open3d(backend, source, target, init, params, target.voxel_size)
+            T, fitness, rmse = _icp_open3d(backend, source, target, init, params, target.voxel_size)
+            if params.quality_distance == params.fine_distance:
+                figures = (fitness, rmse)  # the ICP measured them at the final transform: no second KD-tree
     except RuntimeError as error:  # Open3D raises on degenerate systems (e.g. colored ICP without enough texture)
         return fail(f"registration failed: {' '.join(str(error).split())}")
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         return fail("registration diverged (non-finite transform)")
-    fitness, rmse = _evaluate(source, target, T, params.quality_distance)
+    fitness, rmse = figures if figures is not None else _evaluate(source, target, T, params.quality_distance)
     return RegistrationResult(T, fitness, rmse, True, "")
 
 
