@@ -1,7 +1,16 @@
-"""Speed of the synthetic generator: ``python benchmarks/bench_synth.py [--frames 100] [--category mug] [--seed 0]``.
+"""Speed and coverage of the synthetic generator.
+
+    python benchmarks/bench_synth.py [--frames 100] [--category mug] [--seed 0]
+    python benchmarks/bench_synth.py --coverage [--frames 100] [--categories mug bowl ...] [--seeds 0 1 2 3]
 
 Goal (issue 2): a 100-frame sequence in under 60 s on 2 cores (0.6 s per frame). Prints wall-clock
 and CPU time per frame, the machine's load, and a per-stage breakdown measured on a few extra frames.
+
+With --coverage, no sequence is rendered: per category and seed it prints what the capture shows
+(sequences.synth.coverage, from the scene's geometry): the smallest angle of the object's +y axis
+to the camera (into the opening) and away from it (the bottom), and per grasp the share of its
+contact patch seen unobstructed while another grasp holds the object, and the share of the hand's
+space next to the surface seen free in some frame where that grasp does not hold it.
 """
 
 from __future__ import annotations
@@ -42,12 +51,37 @@ def stages(category: str, seed: int, frames: int = 10) -> dict[str, float]:
     return totals
 
 
+def coverage(category: str, frames: int, seed: int) -> str:
+    """One line of coverage figures for a sequence's scene (drawn as generate.build_scene draws it, not rendered)."""
+    from sequences.synth.coverage import measure
+    from sequences.synth.motion import GraspPlanner, grasp_schedule, hand_states, held_frames, object_trajectory, plan_grasps
+    from sequences.synth.scene import make_layout
+
+    obj = procedural_mesh(category, g._rng(seed, g.SHAPE))
+    schedule = grasp_schedule(frames)
+    trajectory = object_trajectory(frames, g._rng(seed, g.MOTION), held_frames(frames, schedule))
+    layout = make_layout(trajectory.positions.mean(axis=0), g._rng(seed, g.LAYOUT))
+    grasps = plan_grasps(schedule, trajectory, GraspPlanner(obj, g._rng(seed, g.GRASPS)), layout.elbow)
+    c = measure(obj, trajectory, hand_states(frames, grasps), layout)
+    shares = lambda values: " ".join(f"{v:.2f}" for v in values)  # noqa: E731
+    return (f"{category:7} seed {seed}: opening {c.opening_deg:5.1f} deg, bottom {c.bottom_deg:5.1f} deg; "
+            f"contact seen in another grasp {shares(c.contact_seen)}; hand space seen free {shares(c.hand_space_free)}")
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--category", default="mug")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--coverage", action="store_true", help="print coverage figures instead of timing")
+    parser.add_argument("--categories", nargs="+", default=["mug", "bowl", "bottle", "can", "camera", "laptop"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
     args = parser.parse_args()
+    if args.coverage:
+        for category in args.categories:
+            for seed in args.seeds:
+                print(coverage(category, args.frames, seed), flush=True)
+        return
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory() as folder:
         wall, cpu = time.perf_counter(), time.process_time()

@@ -1,7 +1,8 @@
 """Synthetic RGB-D sequences with known truth: ``python -m sequences.synth OUT --category C``.
 
 A procedural (or given) object is carried through all orientations 0.5-0.85 m in front of a
-PrimeSense-like camera by a hand that occludes it and regrasps it, in front of a person, a wall
+PrimeSense-like camera (into its opening and at its bottom too) by a hand that occludes it and
+regrasps it so that what it covered is seen free in another grasp, in front of a person, a wall
 and a table. The sequence is written in Redwood's layout with its truth in ``OUT/truth/``.
 """
 

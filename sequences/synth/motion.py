@@ -1,13 +1,19 @@
 """The object's hand-held trajectory and the hand's grasps, over the frames of a sequence.
 
-The object (ShapeNet frame) is carried through all orientations: its y axis starts pointing up
-(camera -y), then alternately to a side (camera +-x, or toward / away from the camera) and down
-(camera +y), with random spins about its own axis, interpolated by a C2 rotation spline (about
-90 degrees per key, one key every ~22 frames: 5-7 degrees per frame while held, a quarter of
-that while the hand regrasps). Its centre drifts smoothly 0.5-0.85 m in front of the camera.
+The object (ShapeNet frame) is carried through all orientations, as an annotator shows an object
+for reconstruction: its y axis starts pointing up (camera -y), then alternately to a side and
+down (camera +y) or up. The first two side keys point it toward the camera (within ~15 degrees:
+a view into a mug's or bowl's opening) and away from it (the bottom), in random order; later side
+keys are random (camera +-x, toward or away). Random spins about the object's own axis; a C2
+rotation spline interpolates the keys (about 90 degrees per key, one key every ~22 frames: 5-7
+degrees per frame while held, a quarter of that while the hand regrasps). Its centre drifts
+smoothly 0.5-0.85 m in front of the camera.
 
 A hand holds the object by a grasp fixed in the object frame (palm on the surface, fingers wrapped
 on it), releases it, moves around it and grasps elsewhere (at least one regrasp per sequence).
+Each grasp is placed so that the space its hand fills next to the surface is seen free (in front
+of the object) in frames held by another grasp: the hand never hides for good what only its hold
+could show (:mod:`.coverage` measures it).
 Frames: camera OpenCV (x right, y down, z forward), metres; poses map object to camera.
 """
 
@@ -24,6 +30,15 @@ from scipy.spatial.transform import Rotation, RotationSpline
 FRAMES_PER_KEY = 22
 #: Frames per grasp before the hand regrasps.
 FRAMES_PER_GRASP = 45
+#: Points of the palm's or a finger's axis this close to the surface (metres) are the hand's space next to it.
+COVER = 0.02
+#: How many of the best-scored contacts are wrapped and checked, and the weight of the share of their
+#: hand's space never seen free in a frame of another grasp.
+CANDIDATES = 24
+HIDDEN_WEIGHT = 8.0
+#: Radius (metres) of the palm's patch of surface, and the angle (degrees) within which a surface faces the camera.
+PATCH = 0.025
+SHOWN_INCIDENCE = 70.0
 #: Hand dimensions, metres: palm semi-axes (across, along the fingers, thickness), finger and thumb radii.
 PALM = np.array([0.042, 0.046, 0.013])
 FINGER_RADIUS = 0.0085
@@ -67,12 +82,16 @@ def _align(a: np.ndarray, b: np.ndarray) -> Rotation:
     return Rotation.from_rotvec(axis / s * np.arctan2(s, c))
 
 
+#: Standard deviation of the random tilt of a key's y direction (per component, before normalising):
+#: toward / away keys (within ~15 degrees of the camera axis), the others.
+KEY_NOISE = (0.06, 0.2)
 #: How fast the object moves while the hand is off it (regrasping), relative to while it is held.
 RELEASED_SPEED = 0.25
 
 
 def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | None = None) -> Trajectory:
-    """A smooth hand-held trajectory visiting up, down and sideways orientations of the object's y axis.
+    """A smooth hand-held trajectory visiting up, down and sideways orientations of the object's y axis,
+    including toward the camera (into the top) and away from it (the bottom) whenever it has 4+ keys (always).
 
     ``held`` (frames,) bool: frames where the hand holds the object; in the others (a regrasp) the
     object drifts at RELEASED_SPEED of its pace instead of turning on its own.
@@ -84,12 +103,18 @@ def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | 
     start = Rotation.from_matrix(np.diag([-1.0, -1.0, 1.0])) * Rotation.from_rotvec([0, rng.uniform(-np.pi, np.pi), 0])
     start = Rotation.from_rotvec(rng.normal(0, 0.15, 3)) * start
     rotations = [start]
+    # the first two side keys look into the object's top (y toward the camera: a mug's or bowl's inside)
+    # and at its bottom (y away from it), in random order and with little noise; later sides are random
+    toward, away = np.array([0.0, 0, -1.0]), np.array([0.0, 0, 1.0])
+    shown = [toward, away] if rng.random() < 0.5 else [away, toward]
     for k in range(1, keys + 1):
         if k % 2:
-            target = sides[rng.integers(len(sides))]
+            target = shown[k // 2] if k // 2 < len(shown) else sides[rng.integers(len(sides))]
+            noise = KEY_NOISE[0] if k // 2 < len(shown) else KEY_NOISE[1]
         else:
             target = down if (k // 2) % 2 else up
-        target = _unit(target + rng.normal(0, 0.2, 3))
+            noise = KEY_NOISE[1]
+        target = _unit(target + rng.normal(0, noise, 3))
         previous = rotations[-1]
         y_now = previous.apply([0.0, 1.0, 0.0])
         spin = Rotation.from_rotvec([0.0, rng.uniform(-1.0, 1.0), 0.0])
@@ -179,12 +204,15 @@ class GraspPlanner:
         answer = self.scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
         return answer["points"].numpy().astype(np.float64), answer["primitive_normals"].numpy().astype(np.float64)
 
-    def plan(self, rotations: np.ndarray, positions: np.ndarray, elbow: np.ndarray, avoid: list[np.ndarray], first: int, last: int) -> Grasp:
+    def plan(self, rotations: np.ndarray, positions: np.ndarray, elbow: np.ndarray, avoid: list[np.ndarray], first: int, last: int,
+             elsewhere: tuple[np.ndarray, np.ndarray] | None = None) -> Grasp:
         """A grasp held over frames first..last, given the object's rotations (K, 3, 3) and positions (K, 3) over them.
 
         The palm goes where, through the whole hold, the surface faces sideways toward the elbow
         and never the camera (so the forearm reaches it from behind or the side and the fingers
-        wrap over the front), away from earlier contacts in ``avoid``.
+        wrap over the front), away from earlier contacts in ``avoid``, and where the surface faces
+        the camera in some frame held by another grasp (``elsewhere``: the object's rotations
+        (M, 3, 3) and positions (M, 3) in those frames), so what this hand covers is shown free then.
         """
         middle = len(rotations) // 2
         to_elbow = _unit(elbow - positions)  # (K, 3)
@@ -208,8 +236,55 @@ class GraspPlanner:
         for previous in avoid:  # a regrasp takes the object elsewhere, whatever else the score says
             near = np.linalg.norm(self.samples - previous, axis=1) < 0.45 * self.diagonal
             score = score - 20.0 * near
-        pick = int(np.argmax(score))
-        contact, normal, fingers = self.samples[pick], normals[pick], fingers[pick]
+        if elsewhere is None or not len(elsewhere[0]):
+            pick = int(np.argmax(score))
+            return self._grasp(self.samples[pick], normals[pick], fingers[pick], first, last)
+        # of the best candidates, the one whose hand leaves the least of the space it fills next to the surface
+        # never seen free (in front of the object) in a frame held by another grasp: a regrasp must take the
+        # hand off what only those frames can show, or a carving keeps the hand's imprint
+        # and whose palm patch faces the camera, unhidden by the object, in such a frame
+        shown = self.shown(*elsewhere)
+        best, best_score = None, -np.inf
+        for pick in np.argsort(-score)[:CANDIDATES]:  # a few closest-point queries and ray casts each
+            grasp = self._grasp(self.samples[pick], normals[pick], fingers[pick], first, last)
+            hidden = 1.0 - float(self.seen_free(self.hand_space(grasp), *elsewhere).mean())
+            patch = (np.linalg.norm(self.samples - self.samples[pick], axis=1) < PATCH) & (normals @ normals[pick] > 0.5)
+            total = score[pick] - HIDDEN_WEIGHT * (hidden + 1.0 - shown[patch].mean())
+            if total > best_score:
+                best, best_score = grasp, total
+        return best
+
+    def hand_space(self, grasp: Grasp) -> np.ndarray:
+        """(P, 3) points on the axes of the grasp's palm, fingers and thumb within COVER of the surface, object frame."""
+        palm = np.stack(np.meshgrid([-0.8, 0.0, 0.8], [-0.8, 0.0, 0.8], [0.0]), -1).reshape(-1, 3) * PALM
+        steps = np.linspace(0, 1, 4)[None, None, :, None]
+        segments = grasp.wrapped[:, :-1, None] + steps * (grasp.wrapped[:, 1:, None] - grasp.wrapped[:, :-1, None])
+        hand = np.concatenate([palm, segments.reshape(-1, 3)]) @ grasp.hand_in_object[:3, :3].T + grasp.hand_in_object[:3, 3]
+        return hand[self.scene.compute_distance(o3d.core.Tensor(hand.astype(np.float32))).numpy() < COVER]
+
+    def shown(self, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether some frame shows each surface sample: facing the camera within SHOWN_INCIDENCE, unhidden by the object."""
+        centres = -np.einsum("mji,mj->mi", rotations, positions)  # camera centres in the object frame (M, 3)
+        back = centres[:, None] - self.samples[None]  # (M, N, 3) from each sample toward the camera
+        length = np.linalg.norm(back, axis=2)
+        back /= length[..., None]
+        facing = np.einsum("mnj,nj->mn", back, self.sample_normals) > np.cos(np.radians(SHOWN_INCIDENCE))
+        rays = np.concatenate([np.broadcast_to(self.samples + self.sample_normals * 1e-3, back.shape), back], axis=2).reshape(-1, 6)
+        t = self.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
+        return (facing & (t > length)).any(axis=0)
+
+    def seen_free(self, points: np.ndarray, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """(P,) bool: whether some frame (object rotations (M, 3, 3), positions (M, 3)) sees each point (object frame)
+        in front of the object: the ray from the camera through it meets the object only beyond it (or never)."""
+        centres = -np.einsum("mji,mj->mi", rotations, positions)  # camera centres in the object frame (M, 3)
+        ray = points[None] - centres[:, None]  # (M, P, 3)
+        length = np.linalg.norm(ray, axis=2)
+        rays = np.concatenate([np.broadcast_to(centres[:, None], ray.shape), ray / length[..., None]], axis=2).reshape(-1, 6)
+        t = self.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
+        return (t > length + 0.002).any(axis=0)
+
+    def _grasp(self, contact: np.ndarray, normal: np.ndarray, fingers: np.ndarray, first: int, last: int) -> Grasp:
+        """The grasp with its palm on ``contact`` (outward ``normal``), fingers along ``fingers``, wrapped on the surface."""
         across = np.cross(fingers, normal)
         T = np.eye(4)
         T[:3, :3] = np.stack([across, fingers, normal], axis=1)
@@ -301,9 +376,13 @@ def held_frames(frames: int, schedule: list[tuple[int, int]]) -> np.ndarray:
 def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner: GraspPlanner, elbow: np.ndarray) -> list[Grasp]:
     """A grasp for each (first, last) frame range of ``schedule``, each elsewhere than the one before."""
     grasps: list[Grasp] = []
+    held = held_frames(len(trajectory), schedule)
     for first, last in schedule:
-        held = slice(first, last + 1)
-        grasps.append(planner.plan(trajectory.rotations[held], trajectory.positions[held], elbow, [g.contact for g in grasps[-1:]], first, last))
+        hold = slice(first, last + 1)
+        others = held.copy()
+        others[hold] = False
+        grasps.append(planner.plan(trajectory.rotations[hold], trajectory.positions[hold], elbow, [g.contact for g in grasps], first, last,
+                                   (trajectory.rotations[others], trajectory.positions[others])))
     return grasps
 
 

@@ -10,7 +10,7 @@ from ..annotation import CATEGORIES
 from ..errors import InputError
 
 #: Bumped whenever the generator's output changes, so cached sample sequences are regenerated.
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 #: Categories the generator can build without a mesh file.
 PROCEDURAL_CATEGORIES = ("bottle", "bowl", "mug", "can", "camera", "laptop")
 #: Axes a given mesh may use: ShapeNet's (y up), or REDWOOD75's raw axes (x = ShapeNet z, y = -ShapeNet y, z = ShapeNet x).
