@@ -101,6 +101,17 @@ def test_tracking_twice_gives_the_same_poses_and_restores_open3d_threads(scene, 
         assert np.array_equal(pose.matrix, again.frames[frame_id].matrix), frame_id
 
 
+def test_joint_refinement_stops_after_a_round_that_left_the_poses_settled(scene):
+    root, _, annotation = scene
+    progress = []
+    # every round counts as settled: the second round is skipped, and the progress still reaches its total
+    settled = track_sequence(open_sequence(root), annotation, config=TrackingConfig(settled_deg=1e9, settled_m=1e9), progress=lambda d, t: progress.append((d, t)))
+    one_round = track_sequence(open_sequence(root), annotation, config=TrackingConfig(global_rounds=1))
+    for frame_id, pose in one_round.frames.items():
+        assert np.array_equal(pose.matrix, settled.frames[frame_id].matrix), frame_id
+    assert progress[-1][0] == progress[-1][1]
+
+
 def test_refine_frame_pulls_a_perturbed_box_onto_the_object(scene, tracked):
     root, truth, _ = scene
     document = tracked.copy()

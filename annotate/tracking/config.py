@@ -21,6 +21,8 @@ class TrackingConfig:
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
+    settled_deg: float = 0.2  #: ... fewer once a round moved the poses less than this in the median
+    settled_m: float = 0.0005  #: ... and less than this (m)
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
     free_space_tolerance: float = 0.01  #: global models drop voxels seen through by more than this (0: off)
     max_through_share: float = 0.5  #: ... in more than this share of the frames that see them (a moved hand)

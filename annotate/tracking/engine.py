@@ -148,7 +148,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     results = {f: results[f] for f in ids}
 
     # 4: joint refinement against the model of all frames
-    results = refine_all(tracker, results, config.global_rounds, anchors, steps)
+    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m))
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
     if config.smoothing:

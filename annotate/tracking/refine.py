@@ -56,8 +56,13 @@ def refine_all(
     rounds: int,
     anchors: list[str] = (),
     step: Callable[[], None] | None = None,
+    settled: tuple[float, float] | None = None,
 ) -> dict[str, FrameResult]:
     """Re-register every frame of ``results`` (in order) to the model of all of them, ``rounds`` times.
+
+    With ``settled`` (deg, m), the rounds stop early once a round moved the frames' poses by less
+    than both in the median (the model of the next round would be the same model): a laptop's
+    first round moves its frames by 0.07 deg / 0.3 mm in the median, a shallow bowl's by 1.1 deg.
 
     The model is built from the frames that are not suspect (registration failed, or the chains
     disagree); a suspect frame also starts from its predecessor's refined pose and its constant-
@@ -66,7 +71,7 @@ def refine_all(
     A frame whose registration fails keeps its pose and figures (with the failure noted).
     """
     config = tracker.config
-    for _ in range(rounds):
+    for done in range(rounds):
         poses = {k: r.pose for k, r in results.items() if not suspect(r, config)}
         if len(poses) < max(3, len(results) // 4):
             poses = {k: r.pose for k, r in results.items()}
@@ -98,7 +103,13 @@ def refine_all(
                 updated[frame_id] = FrameResult(previous.pose, False, figures)
             if step is not None:
                 step()
+        moved = np.array([pose_difference(results[f].pose, r.pose, tracker.symmetric) for f, r in updated.items() if r.ok])
         results = updated
+        if settled is not None and done + 1 < rounds and len(moved) and np.median(moved[:, 0]) < settled[0] and np.median(moved[:, 1]) < settled[1]:
+            if step is not None:
+                for _ in range((rounds - done - 1) * len(results)):
+                    step()  # the progress still ends at its total
+            break
     return results
 
 
