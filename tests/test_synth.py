@@ -307,6 +307,19 @@ def test_motion_is_smooth_and_hand_held():
     assert up[:, 1].min() < -0.8 and up[:, 1].max() > 0.8 and np.abs(up[:, 1]).min() < 0.3
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_every_face_is_turned_toward_the_camera(seed):
+    """Shown from every side: each of the object's six face directions (+-x, +-y, +-z) comes within 55 deg of facing
+    the camera, its top (+y) and bottom within 25 deg (v4, seed 0: +x no closer than 97 deg, -z 84 deg, +y 71 deg)."""
+    from sequences.synth.motion import grasp_schedule, held_frames, object_trajectory
+
+    R = object_trajectory(100, np.random.default_rng([seed, 2]), held_frames(100, grasp_schedule(100))).rotations
+    toward = np.concatenate([-R[:, 2, :], R[:, 2, :]], axis=1)  # cosines of +x, +y, +z, -x, -y, -z to camera -z
+    closest = np.degrees(np.arccos(np.clip(toward.max(axis=0), -1, 1)))
+    assert closest.max() < 55, closest
+    assert closest[1] < 25 and closest[4] < 25, closest
+
+
 def test_sample_sequence_is_generated_once_atomically(tmp_path, monkeypatch):
     import threading
 

@@ -4,10 +4,11 @@ The object (ShapeNet frame) is carried through all orientations, as an annotator
 for reconstruction: its y axis starts pointing up (camera -y), then alternately to a side and
 down (camera +y) or up. The first two side keys point it toward the camera (within ~15 degrees:
 a view into a mug's or bowl's opening) and away from it (the bottom), in random order; later side
-keys are random (camera +-x, toward or away). Random spins about the object's own axis; a C2
-rotation spline interpolates the keys (about 90 degrees per key, one key every ~22 frames: 5-7
-degrees per frame while held, a quarter of that while the hand regrasps). Its centre drifts
-smoothly 0.5-0.85 m in front of the camera.
+keys are random (camera +-x, toward or away). Random spins about the object's own axis (the best
+of a few draws at turning each of its six faces toward the camera: tilting alone never turns the
+sides along camera x to it). A C2 rotation spline interpolates the keys (about 90-100 degrees per
+key, one key every ~22 frames: 5-7 degrees per frame while held, a quarter of that while the hand
+regrasps). Its centre drifts smoothly 0.5-0.85 m in front of the camera.
 
 A hand holds the object by a grasp fixed in the object frame (palm on the surface, fingers wrapped
 on it), releases it, moves around it and grasps elsewhere (at least one regrasp per sequence).
@@ -85,8 +86,32 @@ def _align(a: np.ndarray, b: np.ndarray) -> Rotation:
 #: Standard deviation of the random tilt of a key's y direction (per component, before normalising):
 #: toward / away keys (within ~15 degrees of the camera axis), the others.
 KEY_NOISE = (0.06, 0.2)
+#: Range (radians, either sense) of the random spin about the object's own y axis at each key, and how many
+#: sets of spins are drawn to choose from.
+SPIN = 1.4
+SPIN_DRAWS = 24
 #: How fast the object moves while the hand is off it (regrasping), relative to while it is held.
 RELEASED_SPEED = 0.25
+
+
+def _key_rotations(start: Rotation, targets: list[np.ndarray], spins: np.ndarray) -> list[Rotation]:
+    """Key orientations: from ``start``, each spins the object about its own y axis (``spins``, radians), then
+    turns its y axis onto the next target (smallest rotation)."""
+    rotations = [start]
+    for target, spin in zip(targets, spins):
+        previous = rotations[-1]
+        rotations.append(_align(previous.apply([0.0, 1.0, 0.0]), target) * previous * Rotation.from_rotvec([0.0, spin, 0.0]))
+    return rotations
+
+
+def _worst_face(rotations: list[Rotation]) -> float:
+    """Of the object's six face directions (+-x, +-y, +-z), the largest of their smallest angles (degrees) to the
+    direction toward the camera (camera -z) along the keys, slerped between them (8 steps a key)."""
+    steps = np.linspace(0.0, 1.0, 8, endpoint=False)[:, None]
+    path = [a * Rotation.from_rotvec((a.inv() * b).as_rotvec()[None] * steps) for a, b in zip(rotations[:-1], rotations[1:])]
+    R = Rotation.concatenate(path).as_matrix()  # (S, 3, 3); row 2 holds the axes' camera z components
+    toward = np.concatenate([-R[:, 2, :], R[:, 2, :]], axis=1)  # (S, 6): cosines of +-x, +-y, +-z to camera -z
+    return float(np.degrees(np.arccos(np.clip(toward.max(axis=0), -1, 1))).max())
 
 
 def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | None = None) -> Trajectory:
@@ -102,11 +127,11 @@ def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | 
     # upright, handle (object -z) toward the camera, then a random spin about the object's y axis
     start = Rotation.from_matrix(np.diag([-1.0, -1.0, 1.0])) * Rotation.from_rotvec([0, rng.uniform(-np.pi, np.pi), 0])
     start = Rotation.from_rotvec(rng.normal(0, 0.15, 3)) * start
-    rotations = [start]
     # the first two side keys look into the object's top (y toward the camera: a mug's or bowl's inside)
     # and at its bottom (y away from it), in random order and with little noise; later sides are random
     toward, away = np.array([0.0, 0, -1.0]), np.array([0.0, 0, 1.0])
     shown = [toward, away] if rng.random() < 0.5 else [away, toward]
+    targets = []
     for k in range(1, keys + 1):
         if k % 2:
             target = shown[k // 2] if k // 2 < len(shown) else sides[rng.integers(len(sides))]
@@ -114,11 +139,12 @@ def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | 
         else:
             target = down if (k // 2) % 2 else up
             noise = KEY_NOISE[1]
-        target = _unit(target + rng.normal(0, noise, 3))
-        previous = rotations[-1]
-        y_now = previous.apply([0.0, 1.0, 0.0])
-        spin = Rotation.from_rotvec([0.0, rng.uniform(-1.0, 1.0), 0.0])
-        rotations.append(_align(y_now, target) * previous * spin)
+        targets.append(_unit(target + rng.normal(0, noise, 3)))
+    # random spins about the object's own y axis: of a few draws, the one that turns every face of the object
+    # (+-x, +-y, +-z) most squarely toward the camera at some point (tilting the y axis toward and away from the
+    # camera alone never turns the faces along camera x to it)
+    draws = [_key_rotations(start, targets, rng.uniform(-SPIN, SPIN, keys)) for _ in range(SPIN_DRAWS)]
+    rotations = min(draws, key=_worst_face)
     times = np.linspace(0.0, 1.0, keys + 1)
     times[1:-1] += rng.uniform(-0.25, 0.25, keys - 1) / keys
     # path parameter per frame: even steps, slowed where the object is not held (smoothed to stay C1)
