@@ -10,7 +10,8 @@ With --coverage, no sequence is rendered: per category and seed it prints what t
 (sequences.synth.coverage, from the scene's geometry): the smallest angle of the object's +y axis
 to the camera (into the opening) and away from it (the bottom), and per grasp the share of its
 contact patch seen unobstructed while another grasp holds the object, and the share of the hand's
-space next to the surface seen free in some frame where that grasp does not hold it.
+space next to the surface seen free in some frame where that grasp does not hold it; and the share
+of the whole surface no frame shows unobstructed (facing within 75 deg).
 """
 
 from __future__ import annotations
@@ -65,7 +66,8 @@ def coverage(category: str, frames: int, seed: int) -> str:
     c = measure(obj, trajectory, hand_states(frames, grasps), layout)
     shares = lambda values: " ".join(f"{v:.2f}" for v in values)  # noqa: E731
     return (f"{category:7} seed {seed}: opening {c.opening_deg:5.1f} deg, bottom {c.bottom_deg:5.1f} deg; "
-            f"contact seen in another grasp {shares(c.contact_seen)}; hand space seen free {shares(c.hand_space_free)}")
+            f"contact seen in another grasp {shares(c.contact_seen)}; hand space seen free {shares(c.hand_space_free)}; "
+            f"surface never seen {c.unseen:.3f}")
 
 
 def main() -> None:

@@ -9,6 +9,8 @@ trajectory and hand (object frame = ShapeNet axes, camera frame = OpenCV, metres
 - per grasp, the contact patch: points of the object's surface within CONTACT of the hand's
   palm, fingers or thumb during that hold, on the hand's side of the surface; and the share of them seen unobstructed (first ray hit,
   facing the camera within SEEN_INCIDENCE) in at least one held frame of *another* grasp;
+- the share of the whole surface that no frame shows unobstructed (first hit, facing within
+  SEEN_INCIDENCE);
 - per grasp, the hand's space next to the surface (hand mesh vertices 2 MARGIN to CONTACT off the
   surface): the share of it seen free (in front of the first surface along the ray) in at least
   one frame where that grasp does not hold the object (what a carving needs to remove the hand).
@@ -41,6 +43,7 @@ class Coverage:
     bottom_deg: float  # smallest angle between object +y and the direction away from the camera
     contact_seen: list[float]  # per grasp: share of its contact patch seen unobstructed during another grasp
     hand_space_free: list[float]  # per grasp: share of the hand's space near the surface seen free when it is elsewhere
+    unseen: float = 0.0  # share of the whole surface no frame shows unobstructed (a deep cavity's floor, under a hand)
 
 
 def _surface_samples(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -96,12 +99,17 @@ def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState
     seen = {g: np.zeros(len(patches[g]), bool) for g in grasps}
     free = {g: np.zeros(len(spaces[g]), bool) for g in grasps}
     object_faces = np.asarray(mesh.faces)
+    ever = np.zeros(len(surface), bool)
     for i in range(frames):
         T = trajectory.pose(i)
         arm = upper_arm_part(layout, elbow_at(layout, T[:3, 3]))
         hand_cam = hand_obj[i] @ T[:3, :3].T + T[:3, 3]
         vertices = np.concatenate([np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], hand_cam, arm.vertices])
         faces = np.concatenate([object_faces, faces_hand + len(mesh.vertices), arm.faces + len(mesh.vertices) + len(hand_cam)])
+        points = surface @ T[:3, :3].T + T[:3, 3]
+        t, length = _first_hits(vertices, faces, points)
+        facing = -np.einsum("ij,ij->i", normals @ T[:3, :3].T, points / length[:, None])
+        ever |= (np.abs(t - length) < MARGIN) & (facing > np.cos(np.radians(SEEN_INCIDENCE)))
         for g in grasps:
             if grasp_of[i] >= 0 and grasp_of[i] != g:  # held by another grasp: is g's patch in view?
                 points = surface[patches[g]] @ T[:3, :3].T + T[:3, 3]
@@ -113,4 +121,4 @@ def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState
                 t, length = _first_hits(vertices, faces, points)
                 free[g] |= t > length + MARGIN
     share = lambda flags: float(flags.mean()) if len(flags) else 1.0  # noqa: E731
-    return Coverage(opening, bottom, [share(seen[g]) for g in grasps], [share(free[g]) for g in grasps])
+    return Coverage(opening, bottom, [share(seen[g]) for g in grasps], [share(free[g]) for g in grasps], float(1.0 - ever.mean()))
