@@ -88,6 +88,7 @@ def reconstruct_sequence(
     voxel_margin: float = 1.0,
     silhouette_px: int = 0,
     carved_share: float = carving.DEFAULT_CARVED_SHARE,
+    observed_share: bool = True,
     veto: float | None = carving.DEFAULT_VETO,
     settle: int = carving.DEFAULT_SETTLE,
     shadows: bool = carving.DEFAULT_SHADOWS,
@@ -102,6 +103,8 @@ def reconstruct_sequence(
     the annotated box) in metres; ``k`` votes threshold (default :func:`carving.choose_k`).
     ``evidence_hull``: drop the unseen space no measured surface bounds (:mod:`reconstruct.evidence`;
     needs the veto's counts; never for symmetry y); None: for open containers (mugs) only.
+    ``observed_share`` (symmetry y, with the veto's counts): a ring is carved when
+    carving.OBSERVED_CARVED_SHARE of its observed voxels are, else when ``carved_share`` of all are.
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -122,7 +125,8 @@ def reconstruct_sequence(
     start = time.perf_counter()
     occupied = result.occupied
     if annotation.symmetry == "y":
-        occupied = carving.revolve_occupancy(occupied, grid, carved_share)
+        observed = None if result.behind_count is None or not observed_share else (result.free_count > 0) | (result.behind_count > 0)
+        occupied = carving.revolve_occupancy(occupied, grid, carving.OBSERVED_CARVED_SHARE if observed is not None else carved_share, observed)
     elif result.behind_count is not None and (evidence.applies(annotation.category, annotation.symmetry) if evidence_hull is None else evidence_hull):
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, result.behind_count)

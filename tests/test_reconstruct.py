@@ -204,6 +204,29 @@ def test_revolve_carves_rings_by_their_carved_share():
     assert not carving.revolve_occupancy(quarter, grid, 0.2)[full_rings].any()
 
 
+def test_revolve_counts_the_share_of_the_observed_ring():
+    """With observation counts a side never seen does not count against carving, and a thin rim that pose errors
+    saw free on 40% of the ring stays: a cylinder of radius 15 mm, true occupancy known per voxel."""
+    grid = carving.make_grid([0.04, 0.02, 0.04], 0.002, margin=0.0)
+    X, Z = np.meshgrid(grid.axis_coordinates(0), grid.axis_coordinates(2), indexing="ij")
+    radius = (np.hypot(X, Z))[:, None, :] * np.ones(grid.shape)
+    angle = np.arctan2(Z, X)[:, None, :] * np.ones(grid.shape)
+    full_rings = (radius > 0.0165) & (radius < 0.019)
+    # seen from an eighth of the azimuths only, outside carved there: the share of the observed arc carves the ring
+    arc = (angle > 0) & (angle < np.pi / 4)
+    occupied = ~((radius > 0.015) & arc)
+    assert carving.revolve_occupancy(occupied, grid, 0.5)[full_rings].all()  # share of the whole ring: kept
+    revolved = carving.revolve_occupancy(occupied, grid, 0.5, observed=arc | (radius <= 0.015))
+    assert not revolved[full_rings].any() and revolved[radius < 0.0145].all()
+    # everything observed; the rim (13.5-15.5 mm: whole rings) carved on 40% of the ring by frames with pose
+    # errors: kept at a share of 0.5
+    rim = (radius >= 0.0135) & (radius < 0.0155)
+    eaten = ~((radius >= 0.0155) | (rim & (angle > 0) & (angle < 0.8 * np.pi)))
+    revolved = carving.revolve_occupancy(eaten, grid, 0.5, observed=np.ones(grid.shape, bool))
+    assert revolved[rim].all() and not revolved[full_rings].any()
+    assert not carving.revolve_occupancy(eaten, grid, 0.3, observed=np.ones(grid.shape, bool))[rim].all()  # 0.3 eats it
+
+
 # --- meshing -------------------------------------------------------------------------------------
 
 
