@@ -30,6 +30,8 @@ from scipy import ndimage
 
 from sequences.camera import Camera
 
+from . import pyramid
+
 #: A voxel is carved when seen free in more than k frames, k = max(DEFAULT_MIN_FREE,
 #: floor(DEFAULT_FREE_FRACTION * frames)), and (the veto) in at least DEFAULT_VETO times as many
 #: frames as saw it just behind the measured surface. Measured with tol_sigmas = 2:
@@ -95,6 +97,17 @@ OBSERVED_FLOOR = 0.1
 #: by its wall in every frame). Bottle, bowl, can: within 2.5 mm either way (seed 3: 2.7 mm; its
 #: bottle +4.1 -> +1.9 mm). ~9 ms a frame.
 DEFAULT_SHADOWS = True
+
+
+#: Voxels per side of the blocks decided whole when a frame sees all their voxels free, or none of them
+#: free or just behind the surface (their projections' hull against min / max pyramids of the
+#: frame's images); only the other blocks are decided voxel by voxel. Same counts as voxel by voxel.
+DEFAULT_BLOCK = 4
+#: Blocks decided voxel by voxel at once (memory: 3 x 8 bytes x B^3 per block).
+MIXED_CHUNK = 4096
+#: Frames between recomputing which blocks have no voxel left to decide.
+PRUNE_EVERY = 2
+STATS = None
 
 
 def depth_sigma(z: np.ndarray | float) -> np.ndarray | float:
@@ -240,12 +253,17 @@ def carve(
     settle: int = DEFAULT_SETTLE,
     shadows: bool = False,
     unbacked: int | None = None,
+    block: int = DEFAULT_BLOCK,
 ) -> CarveResult:
     """Count free-space votes per voxel.
 
     ``frames`` yields (frame id, depth (H, W) float32 metres with 0 = none, pose 4x4 object to
-    camera). Only voxels not carved yet are projected in each frame (a shrinking active set), in
-    float32: the projection errors (~1e-7 relative) are far below a pixel.
+    camera). Voxels are grouped in blocks of ``block`` per side; a frame decides a block whole when the
+    hull of its voxels' projections (its 8 corners' pixel rectangle and depth range) lies where the
+    frame's min / max image pyramids (:mod:`reconstruct.pyramid`) prove every voxel seen free, or
+    none seen free or just behind the surface; the other blocks are decided voxel by voxel (float64).
+    The votes are those of every voxel decided alone (tests/test_reconstruct.py checks it). Blocks
+    whose voxels are all carved for good leave the active set.
 
     With ``veto`` (a ratio), frames that see a voxel just behind the measured surface (0 to one
     tolerance deep: evidence it is inside the object) are counted too, and a voxel is carved only
@@ -256,24 +274,39 @@ def carve(
     With ``shadows``, missing pixels that a projector shadow explains count as free up to the
     occluder's depth (:func:`shadow_free_depth`); they never count as "just behind the surface".
     """
-    points = np.ascontiguousarray(grid.centres(np.float32).T)  # (3, N): rows contiguous for the product
-    count = np.zeros(grid.size, dtype=np.uint16)
-    active = np.arange(grid.size)
+    drop = k if veto is None else max(k, settle)
+    B = max(1, int(block))
+    vs = grid.voxel_size
+    nb = tuple(-(-s // B) for s in grid.shape)  # blocks per axis (the last ones may stick out of the grid)
+    n_blocks = int(np.prod(nb))
+    block_ijk = np.stack(np.unravel_index(np.arange(n_blocks), nb), axis=0).astype(np.float64)  # (3, n_blocks)
+    block_origin = np.asarray(grid.origin, np.float64)[:, None] + vs * B * block_ijk  # centre of each block's first voxel
+    local = np.stack(np.unravel_index(np.arange(B ** 3), (B, B, B)), axis=0).astype(np.float64) * vs  # (3, B^3)
+    corners = np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=0).astype(np.float64) * vs * (B - 1)  # (3, 8)
+    # free votes of a voxel = lazy[block] (frames that saw the whole block free) + fine[block, voxel]
+    lazy = np.zeros(n_blocks, dtype=np.int32)
+    fine = np.zeros((n_blocks, B ** 3), dtype=np.int32)
+    inside_grid = np.ones(tuple(n * B for n in nb), dtype=bool)
+    inside_grid[grid.shape[0]:, :, :] = inside_grid[:, grid.shape[1]:, :] = inside_grid[:, :, grid.shape[2]:] = False
+    inside_grid = inside_grid.reshape(nb[0], B, nb[1], B, nb[2], B).transpose(0, 2, 4, 1, 3, 5).reshape(n_blocks, B ** 3)
+    fine[~inside_grid] = drop + 1  # voxels past the grid's end: settled from the start, cropped at the end
+    fine_min = fine.min(axis=1)
+    behind = np.zeros((n_blocks, B ** 3), dtype=np.uint16) if veto is not None else None
+    active = np.flatnonzero(lazy + fine_min <= drop)  # blocks with a voxel not carved for good yet
     half_diagonal = np.float32(voxel_margin * np.sqrt(3.0) / 2 * grid.voxel_size)
     K = camera.K
     width, height = camera.width, camera.height
-    # per-frame free-depth threshold image with a one-pixel border of -1: pixels outside the image
-    # and missing depth compare as "never free" without per-voxel bounds tests
+    # per-frame images with a one-pixel border: pixels outside the image and missing depth compare
+    # as "never free" (threshold -1) and "never behind the surface" (near inf, far -1)
     threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
     flat_threshold = threshold.reshape(-1)
-    behind = np.zeros(grid.size, dtype=np.uint16) if veto is not None else None
-    drop = k if veto is None else max(k, settle)
     if veto is not None:
         near = np.full((height + 2, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
         far = np.full((height + 2, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
         flat_near, flat_far = near.reshape(-1), far.reshape(-1)
     ids: list[str] = []
     projections = 0
+    eps_px, eps_z = 1e-6, 1e-9  # rounding slack (pixels, metres): a block near a decision boundary is refined
     for done, (frame_id, depth, pose) in enumerate(frames, start=1):
         ids.append(frame_id)
         depth = np.asarray(depth, dtype=np.float32)
@@ -294,46 +327,66 @@ def carve(
         inner = depth - tolerance
         inner[missing] = -1.0
         threshold[1:-1, 1:-1] = inner
-        # [u z, v z, z] = K (R p + t): one (3, 3) x (3, N) product per frame
-        M = (K @ np.asarray(pose, dtype=np.float64)[:3, :]).astype(np.float32)
-        q = M[:, :3] @ points
-        q += M[:, 3:4]
-        z = q[2]
-        projections += z.size
-        behind_camera = None
-        if z.size and z.min() <= 1e-3:  # the camera is inside the grid: those voxels are unknown
-            behind_camera = z <= 1e-3
-            z = np.where(behind_camera, np.float32(1.0), z)
-        inverse = np.reciprocal(z)
-        # padded pixel index floor(u + 0.5) + 1, clipped onto the border for points off the image
-        u = q[0] * inverse
-        u += 1.5
-        np.clip(u, 0.0, width + 1.0, out=u)
-        v = q[1] * inverse
-        v += 1.5
-        np.clip(v, 0.0, height + 1.0, out=v)
-        pixel = v.astype(np.int32)
-        pixel *= width + 2
-        pixel += u.astype(np.int32)
-        free = flat_threshold[pixel] > z
-        if behind_camera is not None:
-            free &= ~behind_camera
-        if behind is not None:
-            inside = (z >= flat_near[pixel]) & (z <= flat_far[pixel])
-            if behind_camera is not None:
-                inside &= ~behind_camera
-            behind[active[inside]] += 1
-        hits = np.flatnonzero(free)
+        if progress is not None and not active.size:
+            progress(done)
+        if not active.size:
+            continue
+        # [u z, v z, z] = K (R p + t), in float64
+        M = K @ np.asarray(pose, dtype=np.float64)[:3, :]
+        qb = M[:, :3] @ block_origin[:, active] + M[:, 3:4]  # (3, blocks)
+        qc = (M[:, :3] @ corners)[:, :, None] + qb[:, None, :]  # (3, 8 corners, blocks): reductions over the short axis first
+        projections += qc[0].size
+        zc = qc[2]
+        z_lo, z_hi = np.minimum.reduce(zc, axis=0), np.maximum.reduce(zc, axis=0)
+        in_front = z_lo > 1e-3  # the box's image is the hull of its corners' images only in front of the camera
+        safe = np.where(in_front, zc, 1.0)
+        uc, vc = qc[0] / safe, qc[1] / safe
+        # padded pixel index floor(u + 1.5), clipped onto the border, of every voxel centre lies in these ranges
+        x0 = np.clip(np.floor(np.minimum.reduce(uc, axis=0) + 1.5 - eps_px), 0, width + 1).astype(np.int64)
+        x1 = np.clip(np.floor(np.maximum.reduce(uc, axis=0) + 1.5 + eps_px), 0, width + 1).astype(np.int64)
+        y0 = np.clip(np.floor(np.minimum.reduce(vc, axis=0) + 1.5 - eps_px), 0, height + 1).astype(np.int64)
+        y1 = np.clip(np.floor(np.maximum.reduce(vc, axis=0) + 1.5 + eps_px), 0, height + 1).astype(np.int64)
+        level = pyramid.rectangle_level(y1 - y0 + 1, x1 - x0 + 1)
+        all_free = in_front & (pyramid.query(pyramid.build(threshold, np.minimum), y0, y1, x0, x1, level) > z_hi + eps_z)
+        none = in_front & (pyramid.query(pyramid.build(threshold, np.maximum), y0, y1, x0, x1, level) <= z_lo - eps_z)
+        if veto is not None:
+            near_lo = pyramid.query(pyramid.build(near, np.minimum), y0, y1, x0, x1, level)
+            far_hi = pyramid.query(pyramid.build(far, np.maximum), y0, y1, x0, x1, level)
+            none &= (z_hi + eps_z < near_lo) | (z_lo - eps_z > far_hi)
+        lazy[active[all_free]] += 1
+        mixed = np.flatnonzero(~(all_free | none))
+        dq = M[:, :3] @ local  # (3, B^3)
+        for start in range(0, mixed.size, MIXED_CHUNK):  # per-voxel decisions for the blocks that need them
+            part = mixed[start:start + MIXED_CHUNK]
+            blocks = active[part]
+            q = qb[:, part, None] + dq[:, None, :]  # (3, blocks, B^3)
+            projections += q[0].size
+            z = q[2]
+            behind_camera = z <= 1e-3  # the camera is inside the grid: those voxels are unknown
+            z = np.where(behind_camera, 1.0, z)
+            u = np.clip(q[0] / z + 1.5, 0.0, width + 1.0).astype(np.int64)
+            v = np.clip(q[1] / z + 1.5, 0.0, height + 1.0).astype(np.int64)
+            pixel = v * (width + 2) + u
+            votes = fine[blocks]
+            alive = votes <= drop - lazy[blocks, None]  # voxels not carved for good before this frame
+            alive &= ~behind_camera
+            votes += (flat_threshold[pixel] > z) & alive
+            fine[blocks] = votes
+            if behind is not None:
+                behind[blocks] += (z >= flat_near[pixel]) & (z <= flat_far[pixel]) & alive
         if progress is not None:
             progress(done)
-        if hits.size:
-            newly = active[hits]
-            count[newly] += 1
-            if (count[newly] > drop).any():  # drop carved voxels from the active set
-                keep = count[active] <= drop
-                active = active[keep]
-                points = np.ascontiguousarray(points[:, keep])
-    return CarveResult(grid, count.reshape(grid.shape), k, ids, projections, None if behind is None else behind.reshape(grid.shape), veto, drop,
+        if done % PRUNE_EVERY == 0 or not mixed.size:  # fine votes only grow: a stale minimum keeps settled blocks a little longer, nothing else
+            fine_min[active] = np.minimum.reduce(fine[active], axis=1)
+        active = active[lazy[active] + fine_min[active] <= drop]
+    # free votes saturate at drop + 1 (a voxel carved for good is no longer counted)
+    count = np.minimum(lazy[:, None] + fine, drop + 1).astype(np.uint16)
+
+    def to_grid(values: np.ndarray) -> np.ndarray:
+        full = values.reshape(nb + (B, B, B)).transpose(0, 3, 1, 4, 2, 5).reshape(tuple(n * B for n in nb))
+        return np.ascontiguousarray(full[: grid.shape[0], : grid.shape[1], : grid.shape[2]])
+
+    return CarveResult(grid, to_grid(count), k, ids, projections, None if behind is None else to_grid(behind), veto, drop,
                        None if veto is None else unbacked)
 
 

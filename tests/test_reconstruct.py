@@ -15,7 +15,7 @@ from sequences.annotation import load_annotation
 from sequences.camera import Camera
 from sequences.errors import InputError
 from sequences.reader import open_sequence
-from test_reconstruct_scenes import cup_mesh, fscore, render_depth, write_scene, y_cylinder
+from test_reconstruct_scenes import cup_mesh, fscore, orbit_poses, render_depth, write_scene, y_cylinder
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +95,43 @@ def test_veto_keeps_voxels_that_other_frames_see_inside():
     np.testing.assert_array_equal(vetoed.all(axis=(0, 1)), expected)
     np.testing.assert_array_equal(vetoed.any(axis=(0, 1)), expected)
     assert not plain.any()
+
+
+def test_block_decisions_give_the_votes_of_each_voxel_decided_alone():
+    # a cup seen from 6 orbit poses, 5 % of the pixels dropped, one camera inside the grid
+    camera = Camera(fx=120, fy=120, cx=79.5, cy=59.5, width=160, height=120)
+    mesh = cup_mesh()
+    rng = np.random.default_rng(3)
+    poses = orbit_poses(6, distance=0.3, seed=1)
+    poses[5][:3, 3] = [0.0, 0.0, 0.02]  # camera inside the grid: voxels behind it are unknown
+    frames = []
+    for i, pose in enumerate(poses):
+        depth = render_depth([mesh.copy().apply_transform(pose)], camera)
+        depth[rng.random(depth.shape) < 0.05] = 0.0
+        frames.append((str(i), depth, pose))
+    grid = carving.make_grid(mesh.extents, 0.004)
+    # independent truth: every voxel centre projected on its own (float64), votes counted frame by frame
+    centres = grid.centres(np.float64)
+    free, behind = np.zeros(grid.size, int), np.zeros(grid.size, int)
+    tol_half = np.sqrt(3) / 2 * grid.voxel_size
+    for _, depth, pose in frames:
+        cam = centres @ pose[:3, :3].T + pose[:3, 3]
+        z = cam[:, 2]
+        ok = z > 1e-3
+        u = np.floor(camera.fx * cam[:, 0] / np.where(ok, z, 1) + camera.cx + 0.5).astype(int)
+        v = np.floor(camera.fy * cam[:, 1] / np.where(ok, z, 1) + camera.cy + 0.5).astype(int)
+        ok &= (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        d = np.where(ok, depth[np.clip(v, 0, camera.height - 1), np.clip(u, 0, camera.width - 1)], 0.0).astype(np.float64)
+        tol = np.float32(2.0) * carving.depth_sigma(d.astype(np.float32)) + np.float32(tol_half)
+        ok &= d > 0
+        alive = free <= 6  # the settle rule: voxels seen free in more than max(k, settle) frames stop counting
+        free += ok & alive & (z < (d.astype(np.float32) - tol))
+        behind += ok & alive & (z >= d) & (z <= (d.astype(np.float32) + tol))
+    for block in (1, 3, 4):
+        result = carving.carve(grid, frames, camera, k=1, veto=0.5, settle=6, block=block)
+        np.testing.assert_array_equal(result.free_count.reshape(-1), np.minimum(free, 7))
+        np.testing.assert_array_equal(result.behind_count.reshape(-1), behind)
+    assert 0 < (free > 0).mean() < 1 and behind.sum() > 0
 
 
 def test_unbacked_voxels_seen_free_once_are_carved_and_backed_ones_kept():
