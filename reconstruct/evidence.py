@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .meshing import largest_component
+from .meshing import fill_holes, largest_component
 
 #: Voxels the hull's box may lie inside the carving's box on any side. Measured on the synthetic
 #: mugs (generator v4, seeds 0-3, true and 1 deg + 2 mm poses; largest pieces): seeds 1-3 shift by
@@ -56,7 +56,7 @@ def evidence_hull(occupied: np.ndarray, behind_count: np.ndarray, box_slack: int
     The outline moves when the box of the hull's largest piece differs from that of
     ``occupied``'s by more than ``box_slack`` voxels on a side.
     """
-    hull = ndimage.binary_fill_holes(occupied & (behind_count > 0))
+    hull = fill_holes(occupied & (behind_count > 0))
     carved = largest_component(occupied)
     if not hull.any() or not carved.any():
         return occupied

@@ -163,7 +163,7 @@ def reconstruct_sequence(
         "mesh_vertices": int(len(mesh.vertices)),
         "mesh_faces": int(len(mesh.faces)),
         "watertight": bool(mesh.is_watertight),
-        "volume": float(mesh.volume),
+        "volume": meshing.signed_volume(mesh),
         "timings": timings,
     }
     return Reconstruction(
