@@ -22,8 +22,10 @@ synthetic figures there are from sequences.synth generator v1, seed 2; DEFAULT_S
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from scipy import ndimage
@@ -104,7 +106,7 @@ DEFAULT_SHADOWS = True
 #: frame's images); only the other blocks are decided voxel by voxel. Same counts as voxel by voxel.
 DEFAULT_BLOCK = 4
 #: Blocks decided voxel by voxel at once (memory: 3 x 8 bytes x B^3 per block).
-MIXED_CHUNK = 4096
+MIXED_CHUNK = 512
 #: Frames between recomputing which blocks have no voxel left to decide.
 PRUNE_EVERY = 2
 STATS = None
@@ -240,6 +242,66 @@ class CarveResult:
         return ~carved
 
 
+@dataclass
+class FrameImages:
+    """One frame's per-pixel bounds (metres, (H + 2, W + 2) float32 with a one-pixel border) and their pyramids.
+
+    A voxel at camera depth z projecting to a pixel is seen free where z < threshold, and just behind
+    the surface where near <= z <= far. The border and missing depth compare as neither (threshold
+    -1, near inf, far -1), so pixels outside the image need no bounds test.
+    """
+
+    threshold: np.ndarray
+    near: np.ndarray
+    far: np.ndarray
+    threshold_min: pyramid.Pyramid
+    threshold_max: pyramid.Pyramid
+    near_min: pyramid.Pyramid | None
+    far_max: pyramid.Pyramid | None
+
+
+def _frame_images(depth: np.ndarray, fx: float, tol_sigmas: float, half_diagonal: float, silhouette_px: int, shadows: bool, behind: bool) -> FrameImages:
+    """The bounds of one depth image (H, W) float32 metres, 0 = none (see :func:`carve` for the options)."""
+    depth = np.asarray(depth, dtype=np.float32)
+    height, width = depth.shape
+    if silhouette_px > 0:
+        # a voxel is free only if every pixel within silhouette_px sees past it: silhouettes
+        # grow by that much, so a pose off by a pixel or two can not cut into the object
+        depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
+    # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
+    tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + np.float32(half_diagonal)
+    missing = depth <= 0
+    near = np.full((height + 2, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
+    far = np.full((height + 2, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
+    if behind:
+        near[1:-1, 1:-1] = np.where(missing, np.inf, depth)
+        far[1:-1, 1:-1] = np.where(missing, -1.0, depth + tolerance)  # d + tol
+    if shadows:
+        depth = shadow_free_depth(depth, fx)
+        tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + np.float32(half_diagonal)
+        missing = depth <= 0
+    threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
+    inner = depth - tolerance
+    inner[missing] = -1.0
+    threshold[1:-1, 1:-1] = inner
+    return FrameImages(threshold, near, far, pyramid.build(threshold, np.minimum), pyramid.build(threshold, np.maximum),
+                       pyramid.build(near, np.minimum) if behind else None, pyramid.build(far, np.maximum) if behind else None)
+
+
+def _prefetched(frames: Iterable[tuple[str, np.ndarray, np.ndarray]], prepare: Callable[[np.ndarray], FrameImages]) -> Iterator[tuple[str, FrameImages, np.ndarray]]:
+    """(frame id, prepared images, pose) in order, each frame's images prepared on a worker thread while
+    the one before is carved (numpy releases the GIL: the two overlap on two cores)."""
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = None
+        for frame_id, depth, pose in frames:
+            job = (frame_id, pool.submit(prepare, depth), pose)
+            if pending is not None:
+                yield pending[0], pending[1].result(), pending[2]
+            pending = job
+        if pending is not None:
+            yield pending[0], pending[1].result(), pending[2]
+
+
 def carve(
     grid: VoxelGrid,
     frames: Iterable[tuple[str, np.ndarray, np.ndarray]],
@@ -296,41 +358,18 @@ def carve(
     half_diagonal = np.float32(voxel_margin * np.sqrt(3.0) / 2 * grid.voxel_size)
     K = camera.K
     width, height = camera.width, camera.height
-    # per-frame images with a one-pixel border: pixels outside the image and missing depth compare
-    # as "never free" (threshold -1) and "never behind the surface" (near inf, far -1)
-    threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
-    flat_threshold = threshold.reshape(-1)
-    if veto is not None:
-        near = np.full((height + 2, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
-        far = np.full((height + 2, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
-        flat_near, flat_far = near.reshape(-1), far.reshape(-1)
     ids: list[str] = []
     projections = 0
     eps_px, eps_z = 1e-6, 1e-9  # rounding slack (pixels, metres): a block near a decision boundary is refined
-    for done, (frame_id, depth, pose) in enumerate(frames, start=1):
+    prepare = partial(_frame_images, fx=float(K[0, 0]), tol_sigmas=tol_sigmas, half_diagonal=half_diagonal, silhouette_px=silhouette_px,
+                      shadows=shadows, behind=veto is not None)
+    for done, (frame_id, images, pose) in enumerate(_prefetched(frames, prepare), start=1):
         ids.append(frame_id)
-        depth = np.asarray(depth, dtype=np.float32)
-        if silhouette_px > 0:
-            # a voxel is free only if every pixel within silhouette_px sees past it: silhouettes
-            # grow by that much, so a pose off by a pixel or two can not cut into the object
-            depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
-        # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
-        tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + half_diagonal
-        missing = depth <= 0
-        if veto is not None:
-            near[1:-1, 1:-1] = np.where(missing, np.inf, depth)
-            far[1:-1, 1:-1] = np.where(missing, -1.0, depth + tolerance)  # d + tol
-        if shadows:
-            depth = shadow_free_depth(depth, float(K[0, 0]))
-            tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + half_diagonal
-            missing = depth <= 0
-        inner = depth - tolerance
-        inner[missing] = -1.0
-        threshold[1:-1, 1:-1] = inner
         if progress is not None and not active.size:
             progress(done)
         if not active.size:
             continue
+        flat_threshold, flat_near, flat_far = images.threshold.reshape(-1), images.near.reshape(-1), images.far.reshape(-1)
         # [u z, v z, z] = K (R p + t), in float64
         M = K @ np.asarray(pose, dtype=np.float64)[:3, :]
         qb = M[:, :3] @ block_origin[:, active] + M[:, 3:4]  # (3, blocks)
@@ -347,11 +386,11 @@ def carve(
         y0 = np.clip(np.floor(np.minimum.reduce(vc, axis=0) + 1.5 - eps_px), 0, height + 1).astype(np.int64)
         y1 = np.clip(np.floor(np.maximum.reduce(vc, axis=0) + 1.5 + eps_px), 0, height + 1).astype(np.int64)
         level = pyramid.rectangle_level(y1 - y0 + 1, x1 - x0 + 1)
-        all_free = in_front & (pyramid.query(pyramid.build(threshold, np.minimum), y0, y1, x0, x1, level) > z_hi + eps_z)
-        none = in_front & (pyramid.query(pyramid.build(threshold, np.maximum), y0, y1, x0, x1, level) <= z_lo - eps_z)
+        all_free = in_front & (pyramid.query(images.threshold_min, y0, y1, x0, x1, level) > z_hi + eps_z)
+        none = in_front & (pyramid.query(images.threshold_max, y0, y1, x0, x1, level) <= z_lo - eps_z)
         if veto is not None:
-            near_lo = pyramid.query(pyramid.build(near, np.minimum), y0, y1, x0, x1, level)
-            far_hi = pyramid.query(pyramid.build(far, np.maximum), y0, y1, x0, x1, level)
+            near_lo = pyramid.query(images.near_min, y0, y1, x0, x1, level)
+            far_hi = pyramid.query(images.far_max, y0, y1, x0, x1, level)
             none &= (z_hi + eps_z < near_lo) | (z_lo - eps_z > far_hi)
         lazy[active[all_free]] += 1
         mixed = np.flatnonzero(~(all_free | none))
@@ -362,14 +401,26 @@ def carve(
             q = qb[:, part, None] + dq[:, None, :]  # (3, blocks, B^3)
             projections += q[0].size
             z = q[2]
-            behind_camera = z <= 1e-3  # the camera is inside the grid: those voxels are unknown
-            z = np.where(behind_camera, 1.0, z)
-            u = np.clip(q[0] / z + 1.5, 0.0, width + 1.0).astype(np.int64)
-            v = np.clip(q[1] / z + 1.5, 0.0, height + 1.0).astype(np.int64)
-            pixel = v * (width + 2) + u
+            behind_camera = None
+            if not in_front[part].all():  # the camera is inside the grid: voxels behind it are unknown
+                behind_camera = z <= 1e-3
+                z = np.where(behind_camera, 1.0, z)
+            inverse = np.reciprocal(z)
+            u = q[0]
+            u *= inverse
+            u += 1.5
+            np.clip(u, 0.0, width + 1.0, out=u)
+            v = q[1]
+            v *= inverse
+            v += 1.5
+            np.clip(v, 0.0, height + 1.0, out=v)
+            pixel = v.astype(np.intp)
+            pixel *= width + 2
+            pixel += u.astype(np.intp)
             votes = fine[blocks]
             alive = votes <= drop - lazy[blocks, None]  # voxels not carved for good before this frame
-            alive &= ~behind_camera
+            if behind_camera is not None:
+                alive &= ~behind_camera
             votes += (flat_threshold[pixel] > z) & alive
             fine[blocks] = votes
             if behind is not None:
