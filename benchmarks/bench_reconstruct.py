@@ -1,7 +1,7 @@
 """Accuracy and speed of reconstruct-sequence on synthetic sequences (run on demand; prints figures).
 
     .venv/bin/python benchmarks/bench_reconstruct.py [--root /tmp/synth] [--categories bottle bowl mug can]
-        [--frames 100] [--seed 0] [--voxel-size 0.002] [--k K] [--tol-sigmas S] [--settle N] [--carved-share S] [--no-shadows]
+        [--frames 100] [--seed 0] [--voxel-size 0.002] [--k K] [--tol-sigmas S] [--voxel-margin M] [--settle N] [--carved-share S] [--no-shadows]
         [--unbacked N | --no-unbacked] [--evidence-hull | --no-evidence-hull] [--bound]
 
 Use one --root per --seed (a sequence generated there is reused whatever the seed).
@@ -105,6 +105,7 @@ def main() -> None:
     parser.add_argument("--voxel-size", type=float, default=0.002)
     parser.add_argument("--k", type=int, default=None)
     parser.add_argument("--tol-sigmas", type=float, default=None)
+    parser.add_argument("--voxel-margin", type=float, default=None, help="half voxel diagonals added to the free-space tolerance")
     parser.add_argument("--settle", type=int, default=None, help="free votes after which the veto no longer saves a voxel")
     parser.add_argument("--carved-share", type=float, default=None, help="share of a ring (symmetry y) carved for the whole ring to go")
     parser.add_argument("--no-shadows", action="store_true", help="missing depth stays unknown even where a projector shadow explains it")
@@ -120,6 +121,8 @@ def main() -> None:
         extra["k"] = args.k
     if args.tol_sigmas is not None:
         extra["tol_sigmas"] = args.tol_sigmas
+    if args.voxel_margin is not None:
+        extra["voxel_margin"] = args.voxel_margin
     if args.settle is not None:
         extra["settle"] = args.settle
     if args.carved_share is not None:
