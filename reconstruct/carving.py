@@ -25,7 +25,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 from scipy import ndimage
@@ -260,41 +259,74 @@ class FrameImages:
     far_max: pyramid.Pyramid | None
 
 
-def _frame_images(depth: np.ndarray, fx: float, tol_sigmas: float, half_diagonal: float, silhouette_px: int, shadows: bool, behind: bool) -> FrameImages:
-    """The bounds of one depth image (H, W) float32 metres, 0 = none (see :func:`carve` for the options)."""
+def _frame_images(depth: np.ndarray, rows: tuple[int, int] | None, fx: float, tol_sigmas: float, half_diagonal: float, silhouette_px: int, shadows: bool,
+                  behind: bool) -> FrameImages:
+    """The bounds of one depth image (H, W) float32 metres, 0 = none (see :func:`carve` for the options).
+
+    ``rows`` (first, last; image rows): the only rows any voxel projects to (None: all); the others keep
+    the border's values. Every step is row by row (the shadow fill) or pixel by pixel, and the
+    silhouette's minimum filter reads ``silhouette_px`` rows beyond: the same values as for the whole image.
+    """
     depth = np.asarray(depth, dtype=np.float32)
     height, width = depth.shape
-    if silhouette_px > 0:
-        # a voxel is free only if every pixel within silhouette_px sees past it: silhouettes
-        # grow by that much, so a pose off by a pixel or two can not cut into the object
-        depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
-    # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
-    tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + np.float32(half_diagonal)
-    missing = depth <= 0
+    first, last = (0, height - 1) if rows is None else rows
     near = np.full((height + 2, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
     far = np.full((height + 2, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
-    if behind:
-        near[1:-1, 1:-1] = np.where(missing, np.inf, depth)
-        far[1:-1, 1:-1] = np.where(missing, -1.0, depth + tolerance)  # d + tol
-    if shadows:
-        depth = shadow_free_depth(depth, fx)
+    threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
+    if first <= last:
+        read = (max(first - silhouette_px, 0), min(last + silhouette_px, height - 1))
+        depth = depth[read[0]:read[1] + 1]
+        if silhouette_px > 0:
+            # a voxel is free only if every pixel within silhouette_px sees past it: silhouettes
+            # grow by that much, so a pose off by a pixel or two can not cut into the object
+            depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
+        depth = depth[first - read[0]:last - read[0] + 1]
+        inside = (slice(first + 1, last + 2), slice(1, -1))
+        # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
         tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + np.float32(half_diagonal)
         missing = depth <= 0
-    threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
-    inner = depth - tolerance
-    inner[missing] = -1.0
-    threshold[1:-1, 1:-1] = inner
-    return FrameImages(threshold, near, far, pyramid.build(threshold, np.minimum), pyramid.build(threshold, np.maximum),
+        if behind:
+            near[inside] = np.where(missing, np.inf, depth)
+            far[inside] = np.where(missing, -1.0, depth + tolerance)  # d + tol
+        if shadows:
+            depth = shadow_free_depth(depth, fx)
+            tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + np.float32(half_diagonal)
+            missing = depth <= 0
+        inner = depth - tolerance
+        inner[missing] = -1.0
+        threshold[inside] = inner
+    # rows no voxel projects to are read only by pyramid tiles that also cover projected rows: the
+    # minimum's identity there keeps them from spoiling those tiles (the border rows stay -1)
+    lowest = threshold.copy()
+    lowest[1:first + 1] = np.inf
+    lowest[last + 2:-1] = np.inf
+    return FrameImages(threshold, near, far, pyramid.build(lowest, np.minimum), pyramid.build(threshold, np.maximum),
                        pyramid.build(near, np.minimum) if behind else None, pyramid.build(far, np.maximum) if behind else None)
 
 
-def _prefetched(frames: Iterable[tuple[str, np.ndarray, np.ndarray]], prepare: Callable[[np.ndarray], FrameImages]) -> Iterator[tuple[str, FrameImages, np.ndarray]]:
+def grid_rows(grid: VoxelGrid, pose: np.ndarray, K: np.ndarray, height: int) -> tuple[int, int] | None:
+    """(first, last) image rows the grid's voxel centres project to at ``pose`` (object to camera), or None
+    when part of the grid lies behind the camera. The grid's image is the hull of its 8 corners' images."""
+    corners = np.asarray(grid.origin, np.float64)[:, None] + grid.voxel_size * (np.array(grid.shape) - 1)[:, None] * np.stack(
+        np.unravel_index(np.arange(8), (2, 2, 2)))
+    q = K @ (np.asarray(pose, np.float64)[:3, :3] @ corners + np.asarray(pose, np.float64)[:3, 3:4])
+    if q[2].min() <= 1e-3:
+        return None
+    v = q[1] / q[2]
+    first = int(np.clip(np.floor(v.min() + 0.5 - 1e-6), 0, height - 1))  # row index floor(v + 0.5), with rounding slack
+    last = int(np.clip(np.floor(v.max() + 0.5 + 1e-6), 0, height - 1))
+    if v.max() + 0.5 < 0 or v.min() + 0.5 >= height:  # the grid is above or below the image: no row
+        return (0, -1)
+    return first, last
+
+
+def _prefetched(frames: Iterable[tuple[str, np.ndarray, np.ndarray]], prepare: Callable[[np.ndarray, np.ndarray], FrameImages]) -> Iterator[tuple[str, FrameImages, np.ndarray]]:
     """(frame id, prepared images, pose) in order, each frame's images prepared on a worker thread while
     the one before is carved (numpy releases the GIL: the two overlap on two cores)."""
     with ThreadPoolExecutor(max_workers=1) as pool:
         pending = None
         for frame_id, depth, pose in frames:
-            job = (frame_id, pool.submit(prepare, depth), pose)
+            job = (frame_id, pool.submit(prepare, depth, pose), pose)
             if pending is not None:
                 yield pending[0], pending[1].result(), pending[2]
             pending = job
@@ -361,8 +393,11 @@ def carve(
     ids: list[str] = []
     projections = 0
     eps_px, eps_z = 1e-6, 1e-9  # rounding slack (pixels, metres): a block near a decision boundary is refined
-    prepare = partial(_frame_images, fx=float(K[0, 0]), tol_sigmas=tol_sigmas, half_diagonal=half_diagonal, silhouette_px=silhouette_px,
-                      shadows=shadows, behind=veto is not None)
+    def prepare(depth: np.ndarray, pose: np.ndarray) -> FrameImages:
+        return _frame_images(depth, grid_rows(grid, pose, K, height), **options)
+
+    options = dict(fx=float(K[0, 0]), tol_sigmas=tol_sigmas, half_diagonal=half_diagonal, silhouette_px=silhouette_px,
+                   shadows=shadows, behind=veto is not None)
     for done, (frame_id, images, pose) in enumerate(_prefetched(frames, prepare), start=1):
         ids.append(frame_id)
         if progress is not None and not active.size:
