@@ -21,6 +21,8 @@ class TrackingConfig:
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
+    max_refine_step_deg: float = 10.0  #: a joint-refinement round turning a frame further keeps its pose (0: no limit)
+    refine_step_fitness_gain: float = 0.05  #: ... unless the turned pose fits the same points by this much better
     settled_deg: float = 0.2  #: ... fewer once a round moved the poses less than this in the median
     settled_m: float = 0.0005  #: ... and less than this (m)
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
@@ -43,6 +45,8 @@ class TrackingConfig:
     min_in_box: float = 0.6
     max_chain_disagreement_deg: float = 5.0
     max_chain_disagreement_m: float = 0.01
+    max_chain_departure_deg: float = 10.0  #: final pose this far from both chains' poses (consistency.py)
+    max_frame_rotation_deg: float = 20.0  #: a frame turned this far from a neighbour frame (consistency.py)
     max_manual_correction_deg: float = 6.0
     max_manual_correction_m: float = 0.012
     min_points: int = 100

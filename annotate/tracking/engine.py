@@ -4,7 +4,8 @@
 1. anchors: the manual frames (in the chosen range);
 2. chains: from every anchor forward and backward to the neighbouring anchors (or the ends),
    each frame registered to the chain's growing model (propagate.py);
-3. reconcile: between two anchors, the two chains are blended (reconcile.py);
+3. reconcile: between two anchors, the two chains are blended, or joined at the frame where they
+   meet when one of them lost the object (reconcile.py);
 4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py);
    where the two chains disagreed, the frame is re-registered from each chain's pose: when no
    start finds a rival pose fitting as well and the pose is smooth with its neighbours, the
@@ -18,7 +19,8 @@
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the placed boxes' mean tilt is kept;
-6. quality: figures and flags per frame (quality.py).
+6. quality: figures and flags per frame (quality.py), with the final poses checked against the
+   chains they came from and for jumps between frames (consistency.py).
 
 Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures).
 """
@@ -33,6 +35,7 @@ from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
 from .config import TrackingConfig, scaled_to
+from .consistency import chain_departures, rotation_jumps
 from .frames import FrameStore
 from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference
@@ -137,8 +140,13 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     for k, (a, b) in enumerate(zip(a_idx, a_idx[1:])):
         forward = {f: FrameResult(r.pose @ frames_of[k], r.ok, r.figures) for f, r in forwards[k].items()}
         backward = {f: FrameResult(r.pose @ frames_of[k + 1], r.ok, r.figures) for f, r in backwards[k].items()}
-        results.update(blend_chains(ids[a : b + 1], forward, backward, symmetric))
-        chain_poses.update({f: (forward[f].pose, backward[f].pose) for f in ids[a + 1 : b] if forward[f].ok and backward[f].ok})
+        blended = blend_chains(ids[a : b + 1], forward, backward, symmetric, config.max_chain_disagreement_deg, config.max_chain_disagreement_m)
+        results.update(blended)
+        for f in ids[a + 1 : b]:
+            if blended[f].figures.get("chain_switch"):
+                chain_poses[f] = (blended[f].pose,)  # its one witness: the path of the chain still on the object
+            elif forward[f].ok and backward[f].ok:
+                chain_poses[f] = (forward[f].pose, backward[f].pose)
     if a_idx[0] > 0:
         chain = run_chain(tracker, ids[a_idx[0] :: -1], results[anchors[0]].pose, steps)
         results.update(chain)
@@ -160,6 +168,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     if a_idx[-1] < len(ids) - 1 and a_idx[-1] > 0:
         ends.append(ids[a_idx[-1] - 1 :])
     results = recheck_single_chains(tracker, results, ends, anchors)
+    # the final pose must stay near one of the chains it came from (both in anchor 0's object frame)
+    departures = chain_departures({f: r.pose for f, r in results.items()}, chain_poses, symmetric)
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}
@@ -171,10 +181,15 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = {f: p @ snap for f, p in poses.items()}
 
     # 6: the document
+    kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]
+    jumps = dict(zip(ids, rotation_jumps(kept, symmetric)))
     out = annotation.copy()
     for frame_id in ids:
         result = results[frame_id]
         figures = dict(result.figures)
+        if frame_id in departures:
+            figures["chain_departure_deg"], figures["chain_departure_m"] = departures[frame_id]
+        figures["rotation_jump_deg"] = float(jumps[frame_id])
         if result.ok:
             points, _ = tracker.crop(frame_id, poses[frame_id])
             figures["in_box"] = in_box_share(points, poses[frame_id], tracker.box)

@@ -7,6 +7,10 @@ Figures (stored as extra keys on each tracked frame of the document):
 - ``chain_disagreement_deg`` / ``chain_disagreement_m``: how far apart the forward and the
   backward chain put the frame between two manual frames; outside their span, how far a second
   chain on the model of all frames lands from the final pose (refine.recheck_single_chains);
+- ``chain_departure_deg`` / ``chain_departure_m``: between two manual frames, how far the final
+  pose is from the nearer of the two chains' poses (consistency.chain_departures);
+- ``rotation_jump_deg``: the larger rotation to the previous and the next frame's final pose
+  (manual frames at their placed box; consistency.rotation_jumps);
 - for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
   is from the pose the rest of the sequence agrees on.
 """
@@ -55,6 +59,10 @@ def flag_reasons(figures: dict, config) -> list[str]:
         reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_deg']:.1f} deg")
     if figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m:
         reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
+    if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
+        reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
+    if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
+        reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
         reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose")
     if figures.get("manual_correction_m", 0.0) > config.max_manual_correction_m:
