@@ -106,6 +106,8 @@ DEFAULT_SHADOWS = True
 DEFAULT_BLOCK = 4
 #: Blocks decided voxel by voxel at once (memory: 3 x 8 bytes x B^3 per block).
 MIXED_CHUNK = 512
+#: Top level of the frames' pyramids: blocks whose pixel rectangle is larger than 2^top pixels are decided voxel by voxel.
+PYRAMID_TOP = 6
 #: Frames between recomputing which blocks have no voxel left to decide.
 PRUNE_EVERY = 2
 STATS = None
@@ -257,22 +259,30 @@ class FrameImages:
     threshold_max: pyramid.Pyramid
     near_min: pyramid.Pyramid | None
     far_max: pyramid.Pyramid | None
+    row0: int  # the padded image's row at the images' first row
 
 
 def _frame_images(depth: np.ndarray, rows: tuple[int, int] | None, fx: float, tol_sigmas: float, half_diagonal: float, silhouette_px: int, shadows: bool,
                   behind: bool) -> FrameImages:
     """The bounds of one depth image (H, W) float32 metres, 0 = none (see :func:`carve` for the options).
 
-    ``rows`` (first, last; image rows): the only rows any voxel projects to (None: all); the others keep
-    the border's values. Every step is row by row (the shadow fill) or pixel by pixel, and the
+    ``rows`` (first, last; image rows): the only rows any voxel projects to (None: all). The images
+    cover a band of the padded image from ``row0`` (a multiple of the pyramid's top tile) to one row
+    past ``last`` (plus the bottom border row if the band reaches it); rows outside ``rows`` keep the
+    border's values. Every step is row by row (the shadow fill) or pixel by pixel, and the
     silhouette's minimum filter reads ``silhouette_px`` rows beyond: the same values as for the whole image.
     """
     depth = np.asarray(depth, dtype=np.float32)
     height, width = depth.shape
     first, last = (0, height - 1) if rows is None else rows
-    near = np.full((height + 2, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
-    far = np.full((height + 2, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
-    threshold = np.full((height + 2, width + 2), -1.0, dtype=np.float32)
+    if first > last:  # the grid projects above or below the image: every voxel lands on a border row
+        first, last, row0, row1 = 0, -1, 0, height + 2
+    else:
+        tile = 2 ** PYRAMID_TOP
+        row0, row1 = first // tile * tile, min(last + 3, height + 2)  # padded rows [row0, row1)
+    near = np.full((row1 - row0, width + 2), np.inf, dtype=np.float32)  # z >= d: behind the surface
+    far = np.full((row1 - row0, width + 2), -1.0, dtype=np.float32)  # z <= d + tol: not deeper than the noise
+    threshold = np.full((row1 - row0, width + 2), -1.0, dtype=np.float32)
     if first <= last:
         read = (max(first - silhouette_px, 0), min(last + silhouette_px, height - 1))
         depth = depth[read[0]:read[1] + 1]
@@ -281,7 +291,7 @@ def _frame_images(depth: np.ndarray, rows: tuple[int, int] | None, fx: float, to
             # grow by that much, so a pose off by a pixel or two can not cut into the object
             depth = ndimage.minimum_filter(depth, size=2 * silhouette_px + 1, mode="nearest")
         depth = depth[first - read[0]:last - read[0] + 1]
-        inside = (slice(first + 1, last + 2), slice(1, -1))
+        inside = (slice(first + 1 - row0, last + 2 - row0), slice(1, -1))
         # free where the voxel's depth z < d - (tol_sigmas sigma(d) + half diagonal)
         tolerance = np.float32(tol_sigmas) * depth_sigma(depth) + np.float32(half_diagonal)
         missing = depth <= 0
@@ -296,12 +306,12 @@ def _frame_images(depth: np.ndarray, rows: tuple[int, int] | None, fx: float, to
         inner[missing] = -1.0
         threshold[inside] = inner
     # rows no voxel projects to are read only by pyramid tiles that also cover projected rows: the
-    # minimum's identity there keeps them from spoiling those tiles (the border rows stay -1)
+    # minimum's identity there keeps them from spoiling those tiles (the image's border rows stay -1)
     lowest = threshold.copy()
-    lowest[1:first + 1] = np.inf
-    lowest[last + 2:-1] = np.inf
-    return FrameImages(threshold, near, far, pyramid.build(lowest, np.minimum), pyramid.build(threshold, np.maximum),
-                       pyramid.build(near, np.minimum) if behind else None, pyramid.build(far, np.maximum) if behind else None)
+    lowest[max(1 - row0, 0):first + 1 - row0] = np.inf
+    lowest[last + 2 - row0:height + 1 - row0] = np.inf
+    return FrameImages(threshold, near, far, pyramid.build(lowest, np.minimum, PYRAMID_TOP), pyramid.build(threshold, np.maximum, PYRAMID_TOP),
+                       pyramid.build(near, np.minimum, PYRAMID_TOP) if behind else None, pyramid.build(far, np.maximum, PYRAMID_TOP) if behind else None, row0)
 
 
 def grid_rows(grid: VoxelGrid, pose: np.ndarray, K: np.ndarray, height: int) -> tuple[int, int] | None:
@@ -313,8 +323,9 @@ def grid_rows(grid: VoxelGrid, pose: np.ndarray, K: np.ndarray, height: int) -> 
     if q[2].min() <= 1e-3:
         return None
     v = q[1] / q[2]
-    first = int(np.clip(np.floor(v.min() + 0.5 - 1e-6), 0, height - 1))  # row index floor(v + 0.5), with rounding slack
-    last = int(np.clip(np.floor(v.max() + 0.5 + 1e-6), 0, height - 1))
+    # row index floor(v + 0.5), one row of slack for rounding (the blocks' corners are projected apart)
+    first = int(np.clip(np.floor(v.min() + 0.5) - 1, 0, height - 1))
+    last = int(np.clip(np.floor(v.max() + 0.5) + 1, 0, height - 1))
     if v.max() + 0.5 < 0 or v.min() + 0.5 >= height:  # the grid is above or below the image: no row
         return (0, -1)
     return first, last
@@ -421,6 +432,11 @@ def carve(
         y0 = np.clip(np.floor(np.minimum.reduce(vc, axis=0) + 1.5 - eps_px), 0, height + 1).astype(np.int64)
         y1 = np.clip(np.floor(np.maximum.reduce(vc, axis=0) + 1.5 + eps_px), 0, height + 1).astype(np.int64)
         level = pyramid.rectangle_level(y1 - y0 + 1, x1 - x0 + 1)
+        # rows within the images' band (the grid's voxels project into it; the clip only moves the
+        # voxels past the grid's end that fill the last blocks, which are never counted)
+        band = images.threshold.shape[0] - 1
+        y0 = np.clip(y0 - images.row0, 0, band)
+        y1 = np.clip(y1 - images.row0, 0, band)
         all_free = in_front & (pyramid.query(images.threshold_min, y0, y1, x0, x1, level) > z_hi + eps_z)
         none = in_front & (pyramid.query(images.threshold_max, y0, y1, x0, x1, level) <= z_lo - eps_z)
         if veto is not None:
@@ -450,6 +466,8 @@ def carve(
             v += 1.5
             np.clip(v, 0.0, height + 1.0, out=v)
             pixel = v.astype(np.intp)
+            pixel -= images.row0
+            np.clip(pixel, 0, images.threshold.shape[0] - 1, out=pixel)  # as above
             pixel *= width + 2
             pixel += u.astype(np.intp)
             votes = fine[blocks]

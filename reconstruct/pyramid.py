@@ -1,7 +1,7 @@
 """Min / max image pyramids: the extreme value of an image over any pixel rectangle in four look-ups.
 
-Level 0 is the image; level L holds the extreme over tiles of 2^L x 2^L pixels (tiles past the
-image's edge padded with the reduction's identity). A rectangle no wider and no taller than 2^L
+Level 0 is the image; level L (up to a top level) holds the extreme over tiles of 2^L x 2^L pixels
+(tiles past the image's edge padded with the reduction's identity). A rectangle no wider and no taller than 2^L
 pixels touches at most 2 x 2 tiles of level L, so its extreme is that of those four tiles: a
 bound over a slightly larger area, never a value from outside the tiles that cover it.
 """
@@ -27,18 +27,20 @@ class Pyramid:
         return len(self.offsets)
 
 
-def build(image: np.ndarray, reduce: np.ufunc) -> Pyramid:
-    """Pyramid of a 2-D image for ``reduce`` (np.minimum or np.maximum), down to one tile."""
+def build(image: np.ndarray, reduce: np.ufunc, top: int = 6) -> Pyramid:
+    """Pyramid of a 2-D image for ``reduce`` (np.minimum or np.maximum), levels 0 .. ``top``.
+
+    The image is padded once with the reduction's identity (the padding never wins) to whole tiles of the top level.
+    """
     identity = np.inf if reduce is np.minimum else -np.inf
-    level = np.asarray(image)
+    image = np.asarray(image)
+    tile = 2 ** top
+    h, w = image.shape
+    level = np.full((-(-h // tile) * tile, -(-w // tile) * tile), identity, dtype=image.dtype)
+    level[:h, :w] = image
     levels = [level.reshape(-1)]
     widths = [level.shape[1]]
-    while level.shape[0] > 1 or level.shape[1] > 1:
-        h, w = level.shape
-        if h % 2 or w % 2:  # pad to even sides with the identity: the padding never wins
-            padded = np.full((h + h % 2, w + w % 2), identity, dtype=level.dtype)
-            padded[:h, :w] = level
-            level = padded
+    for _ in range(top):
         quads = level.reshape(level.shape[0] // 2, 2, level.shape[1] // 2, 2)
         level = reduce(reduce(quads[:, 0, :, 0], quads[:, 0, :, 1]), reduce(quads[:, 1, :, 0], quads[:, 1, :, 1]))
         levels.append(level.reshape(-1))
@@ -56,10 +58,15 @@ def rectangle_level(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
 def query(pyramid: Pyramid, y0: np.ndarray, y1: np.ndarray, x0: np.ndarray, x1: np.ndarray, level: np.ndarray) -> np.ndarray:
     """Extreme over the inclusive pixel rectangles [y0, y1] x [x0, x1], at ``level`` (from :func:`rectangle_level`).
 
-    The result bounds the extreme over each rectangle (equal to it when the rectangle fills its tiles).
+    The result bounds the extreme over each rectangle (equal to it when the rectangle fills its tiles);
+    rectangles larger than the top level's tiles (``level`` >= ``pyramid.levels``) get NaN, which
+    compares false with anything.
     """
+    too_large = level >= pyramid.levels
     level = np.minimum(level, pyramid.levels - 1)
     base, width = pyramid.offsets[level], pyramid.widths[level]
     ty0, ty1, tx0, tx1 = y0 >> level, y1 >> level, x0 >> level, x1 >> level
     f, r = pyramid.flat, pyramid.reduce
-    return r(r(f[base + ty0 * width + tx0], f[base + ty0 * width + tx1]), r(f[base + ty1 * width + tx0], f[base + ty1 * width + tx1]))
+    out = r(r(f[base + ty0 * width + tx0], f[base + ty0 * width + tx1]), r(f[base + ty1 * width + tx0], f[base + ty1 * width + tx1]))
+    out[too_large] = np.nan
+    return out
