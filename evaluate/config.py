@@ -30,35 +30,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-
 from evaluate import metrics
-from sequences.documents import load_document
+from sequences.documents import load_mapping
 from sequences.errors import InputError
 
 THRESHOLD_KEYS = ("position", "degrees", "iou", "fscore")
 #: The paper's threshold tuples (Table 2): (10 deg, 2 cm), (5 deg, 1 cm), with F-score >= 0.6 / 0.8.
-DEFAULT_THRESHOLDS = tuple(t.as_dict() for t in metrics.DEFAULT_THRESHOLDS)
+DEFAULT_THRESHOLDS = tuple({k: (None if v is None else float(v)) for k, v in t.as_dict().items()} for t in metrics.DEFAULT_THRESHOLDS)
 #: The grids of the paper's Fig. 5 (cpas_toolbox's redwood75.yaml), plus IoU.
 DEFAULT_CURVES = {
     "position": metrics.POSITION_CURVE.tolist(),  # m
     "degrees": metrics.DEGREE_CURVE.tolist(),
     "iou": metrics.IOU_CURVE.tolist(),
     "fscore": metrics.FSCORE_CURVE.tolist(),
-}
-KEYS = ("position", "degrees", "iou", "fscore")
-#: The paper's threshold tuples (Table 2): (10 deg, 2 cm), (5 deg, 1 cm), with F-score >= 0.6 / 0.8.
-DEFAULT_THRESHOLDS = (
-    {"position": 0.02, "degrees": 10.0, "iou": None, "fscore": None},
-    {"position": 0.01, "degrees": 5.0, "iou": None, "fscore": None},
-    {"position": 0.02, "degrees": 10.0, "iou": None, "fscore": 0.6},
-    {"position": 0.01, "degrees": 5.0, "iou": None, "fscore": 0.8},
-)
-#: The grids of the paper's Fig. 5 (cpas_toolbox's redwood75.yaml), plus IoU.
-DEFAULT_CURVES = {
-    "position": [round(0.005 * i, 3) for i in range(11)],  # m
-    "degrees": [float(i) for i in range(21)],
-    "iou": [round(0.05 * i, 2) for i in range(21)],
-    "fscore": [round(0.05 * i, 2) for i in range(21)],
 }
 KEYS = ("dataset", "frames", "out", "methods", "method_config", "thresholds", "fscore_threshold", "surface_samples", "seed", "curves")
 
@@ -116,14 +100,7 @@ def _path(base: Path | None, value: Any, path, key: str) -> Path:
 def read_config_file(path: str | Path) -> dict:
     """The YAML file as a validated dict of :data:`KEYS` (paths resolved against its folder)."""
     path = Path(path)
-    data = load_document(path, "config file", as_yaml=True)
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise InputError(path, "config must be a mapping")
-    unknown = sorted(set(map(str, data)) - set(KEYS))
-    if unknown:
-        raise InputError(path, f"unknown config keys {unknown}; expected {list(KEYS)}")
+    data = load_mapping(path, "config", KEYS, as_yaml=True)
     base = path.resolve().parent
     out: dict = {}
     for key in ("dataset", "frames", "out"):

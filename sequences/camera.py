@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .documents import load_document
+from .documents import load_mapping
 from .errors import InputError
 
 
@@ -83,15 +83,7 @@ class Camera:
     def from_yaml(cls, path: str | Path) -> "Camera":
         """Read ``camera.yaml`` (fx, fy, cx, cy, width, height, depth_scale; any subset overrides the defaults)."""
         path = Path(path)
-        data = load_document(path, "camera file", as_yaml=True)
-        if data is None:
-            data = {}
-        if not isinstance(data, dict):
-            raise InputError(path, "camera file must be a mapping of fx, fy, cx, cy, width, height, depth_scale")
-        known = {"fx", "fy", "cx", "cy", "width", "height", "depth_scale"}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise InputError(path, f"unknown camera keys {unknown}; expected {sorted(known)}")
+        data = load_mapping(path, "camera", ("fx", "fy", "cx", "cy", "width", "height", "depth_scale"), as_yaml=True)
         values = {}
         for key, value in data.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import yaml
 
@@ -40,3 +40,22 @@ def load_document(path: str | Path, what: str, *, as_yaml: bool | None = None, l
         return json.loads(text)
     except json.JSONDecodeError as error:
         raise InputError(path, f"malformed JSON: {error}") from error
+
+
+def load_mapping(path: str | Path, what: str, keys: Iterable[str], *, as_yaml: bool | None = None) -> dict:
+    """``path``'s document as a dict whose keys all lie in ``keys`` (an empty file is an empty dict).
+
+    ``what`` is the short name used in messages ("config", "camera"): "<what> must be a mapping",
+    "unknown <what> keys [...]; expected [...]".
+    """
+    path = Path(path)
+    data = load_document(path, f"{what} file", as_yaml=as_yaml)
+    if data is None:
+        return {}
+    keys = list(keys)
+    if not isinstance(data, dict):
+        raise InputError(path, f"{what} must be a mapping of {', '.join(keys)}")
+    unknown = sorted(set(map(str, data)) - set(keys))
+    if unknown:
+        raise InputError(path, f"unknown {what} keys {unknown}; expected {keys}")
+    return data

@@ -2,7 +2,7 @@
 
 import pytest
 
-from sequences.documents import load_document
+from sequences.documents import load_document, load_mapping
 from sequences.errors import InputError
 
 
@@ -35,3 +35,19 @@ def test_missing_file_and_folder(tmp_path):
         load_document(tmp_path / "none.yaml", "doc", missing="no such thing")
     with pytest.raises(InputError, match=r"cannot read doc \(IsADirectoryError\)"):
         load_document(tmp_path, "doc")
+
+
+def test_load_mapping_checks_shape_and_keys(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("")
+    assert load_mapping(path, "camera", ("fx", "fy")) == {}
+    path.write_text("fx: 500\n")
+    assert load_mapping(path, "camera", ("fx", "fy")) == {"fx": 500}
+    path.write_text("- 1\n")
+    with pytest.raises(InputError, match=r"c\.yaml: camera must be a mapping of fx, fy"):
+        load_mapping(path, "camera", ("fx", "fy"))
+    path.write_text("fx: 1\nfocal: 2\n")
+    with pytest.raises(InputError, match=r"unknown camera keys \['focal'\]; expected \['fx', 'fy'\]"):
+        load_mapping(path, "camera", ("fx", "fy"))
+    with pytest.raises(InputError, match="camera file not found"):
+        load_mapping(tmp_path / "none.yaml", "camera", ("fx",))
