@@ -8,7 +8,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from reconstruct import carving, meshing
-from reconstruct.masks import MeshRenderer, render_masks, visible_mask
+from reconstruct.masks import ClusterRenderer, MeshRenderer, render_masks, visible_mask
 from reconstruct.pipeline import reconstruct_sequence
 from reconstruct.tight_box import fit_tight_box, recentre_pose
 from sequences.annotation import load_annotation
@@ -356,6 +356,37 @@ def test_mask_matches_independent_render_and_drops_occluded_pixels():
     behind = pose.copy()
     behind[2, 3] = -0.6
     assert not MeshRenderer(mesh, camera).depth(behind).any()
+
+
+def test_cluster_renderer_casts_fewer_rays_for_the_same_depth():
+    # an L of two boxes (a laptop's shape): half of its bounding box's rectangle is background
+    camera = Camera(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
+    base = trimesh.creation.box([0.3, 0.01, 0.2])
+    lid = trimesh.creation.box([0.3, 0.2, 0.01])
+    lid.apply_translation([0, 0.105, -0.095])
+    mesh = trimesh.util.concatenate([base, lid])
+    whole, clustered = MeshRenderer(mesh, camera), ClusterRenderer(mesh, camera, cells=8)
+    rng = np.random.default_rng(3)
+    rays = rectangles = 0
+    for angles in rng.uniform(-60, 60, size=(5, 3)):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
+        pose[:3, 3] = [0.02, -0.01, 0.7]
+        expected, depth = whole.depth(pose), clustered.depth(pose)
+        assert (expected > 0).sum() > 2000
+        # the rays' directions are summed in float32 (the whole rectangle's by a float64 product): a grazing ray may differ
+        assert ((depth > 0) != (expected > 0)).sum() <= 2
+        both = (depth > 0) & (expected > 0)
+        np.testing.assert_allclose(depth[both], expected[both], atol=1e-5)
+        uv, _ = camera.project(trimesh.bounds.corners(mesh.bounds) @ pose[:3, :3].T + pose[:3, 3])
+        size = np.minimum(np.ceil(uv.max(axis=0)) + 1, [319, 239]) - np.maximum(np.floor(uv.min(axis=0)) - 1, 0) + 1  # MeshRenderer's rectangle
+        assert (expected > 0).sum() <= clustered.cover(pose).sum() <= size.prod()
+        rays, rectangles = rays + clustered.cover(pose).sum(), rectangles + size.prod()
+    assert rays < 0.8 * rectangles  # the whole rectangle's rays
+    # a box reaching behind the camera: the whole rectangle, as MeshRenderer
+    pose = np.eye(4)
+    pose[2, 3] = 0.05
+    np.testing.assert_array_equal(clustered.depth(pose), whole.depth(pose))
 
 
 # --- pipeline on analytic scenes -----------------------------------------------------------------
