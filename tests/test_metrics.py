@@ -22,6 +22,7 @@ from evaluate.metrics import (
     symmetric_box_iou_batch,
     translation_error,
 )
+from evaluate.metrics import hit_grid, sampling
 from evaluate.metrics.box_iou import _rotated_about_y
 
 
@@ -385,7 +386,7 @@ def test_shape_index_hits_shortcut_is_exactly_the_distance_test():
     index = ShapeIndex.from_mesh(mesh, n=3000, seed=0)
     rng = np.random.default_rng(1)
     threshold = 0.01
-    cell = threshold / np.sqrt(3) * (1 - 1e-9)
+    cell = threshold * sampling._CELL
     near = index.points[:200] + rng.normal(size=(200, 3)) * 0.003
     on_grid = np.round(index.points[200:400] / cell) * cell
     direction = rng.normal(size=(100, 3))
@@ -402,3 +403,62 @@ def test_shape_index_hits_shortcut_is_exactly_the_distance_test():
         np.testing.assert_array_equal(hit_gt, d_gt < threshold)
         np.testing.assert_array_equal(hit_pred, d_pred < threshold)
         assert index.fscore(pred, threshold) == fscore(index.points, pred, threshold)
+
+
+@pytest.mark.parametrize("cell", [0.01 / 3.8, 0.01 / 2.5, 0.004])
+def test_grid_reach_certifies_only_pairs_closer_than_the_radius(cell):
+    """Brute force over point pairs: every pair whose cells differ by an offset in reach is closer
+    than the radius, and the reach holds every offset whose cells' farthest corners are."""
+    radius = 0.01
+    offsets = hit_grid.reach(cell, radius)
+    rng = np.random.default_rng(0)
+    # points on and off cell boundaries and corners, in a region a few reaches wide
+    points = np.concatenate([rng.uniform(-0.015, 0.015, (1500, 3)),
+                             np.round(rng.uniform(-0.015, 0.015, (500, 3)) / cell) * cell])
+    cells = np.floor(points * (1 / cell)).astype(np.int64)
+    diff = cells[:, None, :] - cells[None, :, :]
+    in_reach = np.zeros(diff.shape[:2], bool)
+    for o in offsets:
+        in_reach |= np.all(diff == o, axis=2)
+    distance = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
+    assert in_reach.sum() > 10000
+    assert distance[in_reach].max() < radius
+    r = int(np.ceil(radius / cell)) + 1
+    grid = np.stack(np.meshgrid(*[np.arange(-r, r + 1)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    corners = np.linalg.norm((np.abs(grid) + 1) * cell, axis=1)
+    expected = {tuple(o) for o in grid[corners < radius * (1 - 1e-9)]}
+    assert {tuple(o) for o in offsets} == expected
+
+
+def test_shape_index_hits_without_grid_far_from_the_origin_or_spread_out():
+    """Ground truth 5 km from the origin (cell indices beyond MAX_INDEX) or spread over 50 m (more than
+    MAX_CELLS cells): no grid, KD-trees alone, the same hits as the distance test."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    surface = sample_surface(mesh, 2000, seed=0)
+    rng = np.random.default_rng(2)
+    for gt in (surface + [5000.0, 0.0, 0.0], np.concatenate([surface, surface + [50.0, 0.0, 0.0]])):
+        index = ShapeIndex(gt)
+        pred = gt[::2] * 1.0 + rng.normal(size=(len(gt) // 2, 3)) * 0.004
+        hit_gt, hit_pred = index.hits(pred, 0.01)
+        assert not index.prepare(0.01).built
+        d_gt, d_pred = index.distances(pred)
+        assert 0 < hit_pred.sum() < len(pred)
+        np.testing.assert_array_equal(hit_gt, d_gt < 0.01)
+        np.testing.assert_array_equal(hit_pred, d_pred < 0.01)
+
+
+def test_shape_index_hits_at_the_threshold_exactly():
+    """Predicted points at 1 - 1e-12 and 1 + 1e-12 thresholds from a gt point along random directions,
+    and far outside the gt box: the grid never decides against the distance test."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    index = ShapeIndex.from_mesh(mesh, n=3000, seed=0)
+    rng = np.random.default_rng(4)
+    threshold = 0.01
+    direction = rng.normal(size=(3000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    for scale in (1 - 1e-12, 1 + 1e-12):
+        pred = np.concatenate([index.points + direction * threshold * scale, rng.uniform(-1, 1, (500, 3))])
+        hit_gt, hit_pred = index.hits(pred, threshold)
+        d_gt, d_pred = index.distances(pred)
+        np.testing.assert_array_equal(hit_gt, d_gt < threshold)
+        np.testing.assert_array_equal(hit_pred, d_pred < threshold)
