@@ -8,8 +8,8 @@ point holds only points that are hits.  The test is one-sided (a point outside t
 a hit) and exact: the distances it certifies are strictly below ``r`` with a relative margin of 1e-9,
 far above floating-point rounding, so it never disagrees with a KD-tree's ``distance < r``.
 
-Grids are dense boolean arrays over the ground-truth points' box, padded by the reach; the cells
-beyond are never marked.  A grid over an absurdly large box (more than ``MAX_CELLS`` cells) is not
+Grids are dense boolean arrays over the ground-truth points' box, padded by the reach and by more
+than ``r``: a query point outside the grid is a certain miss.  A grid over an absurdly large box (more than ``MAX_CELLS`` cells) is not
 built; callers then fall back to KD-tree queries alone.
 """
 

@@ -6,8 +6,9 @@ therefore explicit everywhere, default 10000 as cpas_toolbox's ``num_gt_points``
 area-weighted (uniform over the surface) and seeded, so the same mesh, ``n`` and ``seed`` always give
 the same points.
 
-:class:`ShapeIndex` samples a ground-truth mesh once and builds its KD-tree once; every prediction and
-every threshold of that object reuses it.
+:class:`ShapeIndex` samples a ground-truth mesh once and builds its KD-tree once, and the cell grid of
+its F-score test once per F-score distance; every prediction and every threshold of that object reuses
+them.
 """
 
 from __future__ import annotations
@@ -103,8 +104,8 @@ class ShapeIndex:
 
         Cell grids (:mod:`evaluate.metrics.hit_grid`) decide most points: a predicted point in a cell
         within reach of a gt point's cell (the gt side dilated once per object and threshold), a gt
-        point with a predicted point in a cell within its reach, and a predicted point outside the gt
-        box widened by ``threshold`` (a miss).  Only the undecided points need a KD-tree query:
+        point with a predicted point in a cell within its reach, and a predicted point outside the grid
+        (more than ``threshold`` beyond the gt box along some axis: a miss).  Only the undecided points need a KD-tree query:
         predicted points against the prebuilt gt tree (each hit also settles its nearest gt point),
         then the gt points still undecided against a tree of just the predicted points near them.
         """
