@@ -110,7 +110,6 @@ MIXED_CHUNK = 512
 PYRAMID_TOP = 6
 #: Frames between recomputing which blocks have no voxel left to decide.
 PRUNE_EVERY = 2
-STATS = None
 
 
 def depth_sigma(z: np.ndarray | float) -> np.ndarray | float:
@@ -438,49 +437,58 @@ def carve(
         y0 = np.clip(y0 - images.row0, 0, band)
         y1 = np.clip(y1 - images.row0, 0, band)
         all_free = in_front & (pyramid.query(images.threshold_min, y0, y1, x0, x1, level) > z_hi + eps_z)
-        none = in_front & (pyramid.query(images.threshold_max, y0, y1, x0, x1, level) <= z_lo - eps_z)
-        if veto is not None:
+        need_free = ~(all_free | (in_front & (pyramid.query(images.threshold_max, y0, y1, x0, x1, level) <= z_lo - eps_z)))
+        lazy[active[all_free]] += 1
+        if veto is not None:  # a block seen all free has no voxel behind the surface
             near_lo = pyramid.query(images.near_min, y0, y1, x0, x1, level)
             far_hi = pyramid.query(images.far_max, y0, y1, x0, x1, level)
-            none &= (z_hi + eps_z < near_lo) | (z_lo - eps_z > far_hi)
-        lazy[active[all_free]] += 1
-        mixed = np.flatnonzero(~(all_free | none))
+            need_behind = ~(all_free | (in_front & ((z_hi + eps_z < near_lo) | (z_lo - eps_z > far_hi))))
+        else:
+            need_behind = np.zeros_like(need_free)
         dq = M[:, :3] @ local  # (3, B^3)
-        for start in range(0, mixed.size, MIXED_CHUNK):  # per-voxel decisions for the blocks that need them
-            part = mixed[start:start + MIXED_CHUNK]
-            blocks = active[part]
-            q = qb[:, part, None] + dq[:, None, :]  # (3, blocks, B^3)
-            projections += q[0].size
-            z = q[2]
-            behind_camera = None
-            if not in_front[part].all():  # the camera is inside the grid: voxels behind it are unknown
-                behind_camera = z <= 1e-3
-                z = np.where(behind_camera, 1.0, z)
-            inverse = np.reciprocal(z)
-            u = q[0]
-            u *= inverse
-            u += 1.5
-            np.clip(u, 0.0, width + 1.0, out=u)
-            v = q[1]
-            v *= inverse
-            v += 1.5
-            np.clip(v, 0.0, height + 1.0, out=v)
-            pixel = v.astype(np.intp)
-            pixel -= images.row0
-            np.clip(pixel, 0, images.threshold.shape[0] - 1, out=pixel)  # as above
-            pixel *= width + 2
-            pixel += u.astype(np.intp)
-            votes = fine[blocks]
-            alive = votes <= drop - lazy[blocks, None]  # voxels not carved for good before this frame
-            if behind_camera is not None:
-                alive &= ~behind_camera
-            votes += (flat_threshold[pixel] > z) & alive
-            fine[blocks] = votes
-            if behind is not None:
-                behind[blocks] += (z >= flat_near[pixel]) & (z <= flat_far[pixel]) & alive
+        rows_band = (images.row0, images.row0 + images.threshold.shape[0] - 1)  # padded rows of the images (as above)
+        mixed = 0
+        # per-voxel decisions for the blocks that need them, each group with only the tests its blocks need
+        for count_free, count_behind in ((True, True), (True, False), (False, True)):
+            group = np.flatnonzero((need_free if count_free else ~need_free) & (need_behind if count_behind else ~need_behind))
+            mixed += group.size
+            for start in range(0, group.size, MIXED_CHUNK):
+                part = group[start:start + MIXED_CHUNK]
+                blocks = active[part]
+                q = qb[:, part, None] + dq[:, None, :]  # (3, blocks, B^3)
+                projections += q[0].size
+                z = q[2]
+                behind_camera = None
+                if not in_front[part].all():  # the camera is inside the grid: voxels behind it are unknown
+                    behind_camera = z <= 1e-3
+                    z = np.where(behind_camera, 1.0, z)
+                inverse = np.reciprocal(z)
+                u = q[0]
+                u *= inverse
+                u += 1.5
+                np.clip(u, 0.0, width + 1.0, out=u)
+                v = q[1]
+                v *= inverse
+                v += 1.5
+                # padded row floor(v + 1.5) clipped onto the border, then onto the band: clipping v onto the band's
+                # (integer) rows floors to the same row
+                np.clip(v, rows_band[0], rows_band[1], out=v)
+                pixel = v.astype(np.intp)
+                pixel -= images.row0
+                pixel *= width + 2
+                pixel += u.astype(np.intp)
+                votes = fine[blocks]
+                alive = votes <= drop - lazy[blocks, None]  # voxels not carved for good before this frame
+                if behind_camera is not None:
+                    alive &= ~behind_camera
+                if count_free:
+                    votes += (flat_threshold[pixel] > z) & alive
+                    fine[blocks] = votes
+                if count_behind:
+                    behind[blocks] += (z >= flat_near[pixel]) & (z <= flat_far[pixel]) & alive
         if progress is not None:
             progress(done)
-        if done % PRUNE_EVERY == 0 or not mixed.size:  # fine votes only grow: a stale minimum keeps settled blocks a little longer, nothing else
+        if done % PRUNE_EVERY == 0 or not mixed:  # fine votes only grow: a stale minimum keeps settled blocks a little longer, nothing else
             fine_min[active] = np.minimum.reduce(fine[active], axis=1)
         active = active[lazy[active] + fine_min[active] <= drop]
     # free votes saturate at drop + 1 (a voxel carved for good is no longer counted)

@@ -85,8 +85,12 @@ def signed_volume(mesh: trimesh.Trimesh) -> float:
 
 
 def largest_piece(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The connected piece of a mesh with the most faces."""
-    pieces = mesh.split(only_watertight=False)
-    if len(pieces) <= 1:
+    """The connected piece of a mesh with the most faces (the mesh itself when it is one piece).
+
+    Labels the faces' components and builds only the largest piece (trimesh's split builds every
+    piece, hole-filling each: 0.45 s on a 209k-face laptop that is one piece)."""
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    sizes = np.bincount(labels)
+    if len(sizes) <= 1:
         return mesh
-    return max(pieces, key=lambda m: len(m.faces))
+    return mesh.submesh([np.flatnonzero(labels == int(np.argmax(sizes)))], only_watertight=False, repair=True)[0]
