@@ -140,7 +140,8 @@ def build_sequence(category: str, seed: int, args, work: Path) -> dict:
     root = work / "sequences" / name
     timings = {}
     start = time.perf_counter()
-    if not (root / "truth" / "truth.json").exists():
+    if not (root / "truth" / "truth.json").exists() or len(load_truth(root).ids) != args.frames:
+        # a sequence of another length (an earlier --frames) is not reused
         if root.exists():
             shutil.rmtree(root)
         generate_sequence(root, category, frames=args.frames, seed=seed)
@@ -439,7 +440,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=REPO / "build" / "report", help="scratch folder: sequences and both datasets (default build/report)")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "report", help="report folder (default docs/report)")
-    parser.add_argument("--frames", type=int, default=80, help="frames per synthetic sequence (default 80)")
+    # 100 frames, as the issues' goals and benchmarks/ measure: the capture protocol (sequences.synth)
+    # spreads its regrasps and views over the sequence, and shorter ones show less (measured on the mug,
+    # seed 3: 80 frames leave 8% of the second grasp's hand space never seen free, a 15 mm remnant)
+    parser.add_argument("--frames", type=int, default=100, help="frames per synthetic sequence (default 100)")
     parser.add_argument("--per-sequence", type=int, default=8, help="frames selected per sequence (default 8)")
     parser.add_argument("--seeds", type=int, nargs=4, default=[1, 2, 3, 4], help="generator seed per category, in the order bottle bowl mug can")
     parser.add_argument("--categories", nargs="+", default=list(CATEGORIES), choices=CATEGORIES, help="categories to include (default all four)")
