@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_tracking.py [--data DIR] [--categories mug can ...] [--frames 100]
         [--manual 4] [--backends point_to_plane kiss ...] [--compare-on mug can] [--reconstruct] [--json OUT]
+        [--poses DIR] [--compare-poses DIR] [--profile N]
 
 For each category: a synthetic sequence (sequences.synth, cached in DIR), manual frames = the
 truth perturbed by up to 3 deg / 5 mm with extents off by up to 8% (synth.truth_annotation),
@@ -14,7 +15,19 @@ frame by frame: median F-score at 5 mm. Goals: median <= 1.5 deg, p90 <= 3 deg, 
 no unflagged frame > 10 deg, <= 150 ms per frame on 2 cores, F-score >= 0.85.
 
 Tracking runs Open3D on one thread (``TrackingConfig.threads``), so a run's figures repeat
-exactly; on a shared machine compare the CPU column, the wall column follows the load. The
+exactly; on a shared machine compare the CPU column, the wall column follows the load. The CPU
+column follows the load too, less: on the 2-core test machine the same laptop run (seed 0, same
+poses) took 159 ms CPU per frame at load 1 and 177-179 at load 4-6 (bowl seed 0: 74 vs 95), so
+compare speed only between runs at a similar load.
+
+A speed change should leave the poses as they are: ``--poses DIR`` writes every frame's pose
+and flag (exact floats), and a later run with ``--compare-poses DIR`` reports how many frames
+changed and by how much. The chains amplify rounding: reversing the order of a frame's points
+before ICP alone (the same sums, in another order) moved v5 laptop seed 1's median centre error
+from 24.7 to 10.1 mm and seed 0's p90 rotation error from 7.0 to 2.8 deg, so a change that moves
+poses at all is judged on all categories and seeds, pooled, not on one sequence's figures.
+``--profile N`` prints the N tracking entries with the most cumulative time (cProfile; its
+overhead inflates the timing columns of that run). The
 F-score also measures reconstruct-sequence itself: with every frame at its true pose it is
 the reconstruction's own ceiling (measured: mug seed 0, 0.58 with true poses, 0.58 tracked).
 """
@@ -22,8 +35,11 @@ the reconstruction's own ceiling (measured: mug seed 0, 0.58 with true poses, 0.
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
 import json
 import os
+import pstats
 import sys
 import time
 from pathlib import Path
@@ -54,14 +70,21 @@ def manual_frames(ids: list[str], count: int) -> list[str]:
     return [ids[i] for i in np.linspace(min(3, n - 1), max(n - 4, 0), count).round().astype(int)]
 
 
-def run_one(root: Path, backend: str, manual: int, seed: int) -> tuple[dict, object, object]:
+def run_one(root: Path, backend: str, manual: int, seed: int, profile: int = 0) -> tuple[dict, object, object]:
     truth = load_truth(root)
     sequence = open_sequence(root)
     annotation = truth_annotation(truth, manual_frames(sequence.ids, manual), rotation_deg=3.0, translation_m=0.005, extents_rel=0.08, seed=seed)
+    profiler = cProfile.Profile() if profile > 0 else None
     load_before = os.getloadavg()[0]
     wall, cpu = time.perf_counter(), time.process_time()
+    if profiler is not None:
+        profiler.enable()
     tracked = track_sequence(sequence, annotation, config=TrackingConfig(backend=backend))
+    if profiler is not None:
+        profiler.disable()
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    if profiler is not None:
+        print(profile_summary(profiler, profile), flush=True)
     symmetric = truth.symmetry == "y"
     ids = sequence.ids
     errors = np.array([pose_difference(tracked.frames[f].matrix, truth.poses[f], symmetric) for f in ids])
@@ -80,6 +103,48 @@ def run_one(root: Path, backend: str, manual: int, seed: int) -> tuple[dict, obj
         "load_1min": float(np.mean([load_before, os.getloadavg()[0]])),
     }
     return row, tracked, truth
+
+
+def profile_summary(profiler: cProfile.Profile, count: int) -> str:
+    """The ``count`` entries of the tracking package and of Open3D with the most cumulative time."""
+    out = io.StringIO()
+    pstats.Stats(profiler, stream=out).sort_stats("cumulative").print_stats(r"annotate/tracking|open3d", count)
+    lines = out.getvalue().splitlines()
+    start = next((i for i, line in enumerate(lines) if line.lstrip().startswith("ncalls")), 0)
+    return "\n".join(lines[start:]).rstrip()
+
+
+def pose_record(tracked, ids: list[str]) -> dict:
+    """Every frame's 4x4 pose (exact floats) and flag, for comparing two runs frame by frame."""
+    return {
+        "frames": list(ids),
+        "poses": [np.asarray(tracked.frames[f].matrix, dtype=float).ravel().tolist() for f in ids],
+        "flagged": [bool(tracked.frames[f].extra.get("flagged")) for f in ids],
+    }
+
+
+def pose_changes(before: dict, after: dict, symmetric: bool) -> dict:
+    """How two runs' poses differ: frames whose pose changed at all, the largest change (deg, mm), flags that changed."""
+    if before["frames"] != after["frames"]:
+        raise ValueError("the two runs cover different frames")
+    a = np.asarray(before["poses"], dtype=float).reshape(-1, 4, 4)
+    b = np.asarray(after["poses"], dtype=float).reshape(-1, 4, 4)
+    Ra, Rb = a[:, :3, :3], b[:, :3, :3]
+    # angles by atan2 (sine and cosine both measured): accurate at 1e-9 deg, where arccos reads 1e-6 deg
+    if symmetric:  # the angle between the y axes
+        ya, yb = Ra[:, :, 1], Rb[:, :, 1]
+        deg = np.degrees(np.arctan2(np.linalg.norm(np.cross(ya, yb), axis=1), np.einsum("ni,ni->n", ya, yb)))
+    else:
+        D = np.einsum("nji,njk->nik", Ra, Rb)
+        sine = np.linalg.norm(D - D.transpose(0, 2, 1), axis=(1, 2)) / (2 * np.sqrt(2))
+        deg = np.degrees(np.arctan2(sine, (np.trace(D, axis1=1, axis2=2) - 1) / 2))
+    mm = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1) * 1000
+    return {
+        "frames_changed": int(np.sum(np.any(a != b, axis=(1, 2)))),
+        "max_change_deg": float(deg.max(initial=0.0)),
+        "max_change_mm": float(mm.max(initial=0.0)),
+        "flags_changed": int(np.sum(np.asarray(before["flagged"]) != np.asarray(after["flagged"]))),
+    }
 
 
 def reconstruction_fscore(root: Path, tracked, truth, threshold: float = 0.005, samples: int = 5000) -> float:
@@ -114,6 +179,9 @@ def main() -> int:
     parser.add_argument("--compare-on", nargs="+", default=["mug", "can"], help="categories for the backend comparison")
     parser.add_argument("--reconstruct", action="store_true", help="also run reconstruct-sequence and its F-score at 5 mm")
     parser.add_argument("--json", help="write the rows as JSON here")
+    parser.add_argument("--poses", help="write every frame's pose and flag here (one JSON per category, seed and backend)")
+    parser.add_argument("--compare-poses", help="compare every frame's pose with a run written by --poses to this folder")
+    parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N tracking entries with the most cumulative time (cProfile)")
     args = parser.parse_args()
     data = Path(args.data)
     data.mkdir(parents=True, exist_ok=True)
@@ -126,7 +194,15 @@ def main() -> int:
         root = sequence_for(data, category, args.frames, args.seed)
         backends = [default] + ([b for b in args.backends if b != default] if category in args.compare_on else [])
         for backend in backends:
-            row, tracked, truth = run_one(root, backend, args.manual, args.seed)
+            row, tracked, truth = run_one(root, backend, args.manual, args.seed, args.profile)
+            record = pose_record(tracked, open_sequence(root).ids)
+            name = f"{category}-s{args.seed}-{backend}.json"
+            if args.poses:
+                Path(args.poses).mkdir(parents=True, exist_ok=True)
+                (Path(args.poses) / name).write_text(json.dumps(record))
+            if args.compare_poses:
+                previous = Path(args.compare_poses) / name
+                row.update(pose_changes(json.loads(previous.read_text()), record, truth.symmetry == "y") if previous.exists() else {"frames_changed": None})
             if args.reconstruct and backend == default:
                 try:
                     row["fscore_5mm_median"] = reconstruction_fscore(root, tracked, truth)
@@ -135,6 +211,10 @@ def main() -> int:
                     row["reconstruct_error"] = f"{error.__class__.__name__}: {error}"
             rows.append(row)
             extra = f"  F@5mm {row['fscore_5mm_median']:.3f}" if row.get("fscore_5mm_median") is not None else ""
+            if row.get("frames_changed") is not None:
+                extra += f"  poses changed in {row['frames_changed']} frames (max {row['max_change_deg']:.3g} deg, {row['max_change_mm']:.3g} mm; {row['flags_changed']} flags)"
+            elif args.compare_poses:
+                extra += "  (no earlier poses to compare)"
             print(
                 f"{row['category']:8s} {backend:15s} {row['rot_median_deg']:7.2f} {row['rot_p90_deg']:7.2f} {row['centre_median_mm']:7.2f} "
                 f"{row['flagged']:7d} {row['unflagged_over_10deg']:6d} {row['ms_per_frame_wall']:6.0f} {row['ms_per_frame_cpu']:8.0f} {row['load_1min']:5.1f}{extra}",

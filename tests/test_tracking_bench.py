@@ -1,0 +1,46 @@
+"""bench_tracking's frame-by-frame pose comparison: against poses changed by known amounts."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from bench_tracking import pose_changes  # noqa: E402
+
+
+def _record(poses: list[np.ndarray], flagged: list[bool]) -> dict:
+    return {"frames": [f"{i:06d}" for i in range(len(poses))], "poses": [p.ravel().tolist() for p in poses], "flagged": flagged}
+
+
+def test_pose_changes_counts_frames_and_measures_the_largest_change():
+    rng = np.random.default_rng(0)
+    poses = []
+    for _ in range(5):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+        T[:3, 3] = rng.normal(size=3) * 0.1 + [0, 0, 0.6]
+        poses.append(T)
+    moved = [p.copy() for p in poses]
+    moved[1][:3, :3] = moved[1][:3, :3] @ Rotation.from_rotvec([0, 0, np.radians(2.0)]).as_matrix()  # 2 deg about the box's z
+    moved[3][:3, 3] += [0.003, 0.0, 0.004]  # 5 mm
+    moved[4][0, 3] = np.nextafter(moved[4][0, 3], 1.0)  # one ulp: changed, by nothing measurable
+    same = pose_changes(_record(poses, [False] * 5), _record(poses, [False] * 5), symmetric=False)
+    assert same["frames_changed"] == 0 and same["flags_changed"] == 0 and same["max_change_mm"] == 0.0
+    assert same["max_change_deg"] < 1e-9
+    changes = pose_changes(_record(poses, [False] * 5), _record(moved, [False, True, False, False, False]), symmetric=False)
+    assert changes["frames_changed"] == 3 and changes["flags_changed"] == 1
+    assert abs(changes["max_change_deg"] - 2.0) < 1e-9
+    assert abs(changes["max_change_mm"] - 5.0) < 1e-9
+    # symmetric about y: a tilt of the y axis counts
+    tilted = [p.copy() for p in poses]
+    tilted[0][:3, :3] = tilted[0][:3, :3] @ Rotation.from_rotvec([np.radians(3.0), 0, 0]).as_matrix()
+    assert abs(pose_changes(_record(poses, [False] * 5), _record(tilted, [False] * 5), symmetric=True)["max_change_deg"] - 3.0) < 1e-9
+    # symmetric about y: a turn about the box's y axis is no change of the pose
+    spun = [p.copy() for p in poses]
+    spun[2][:3, :3] = spun[2][:3, :3] @ Rotation.from_rotvec([0, np.radians(40.0), 0]).as_matrix()
+    assert pose_changes(_record(poses, [False] * 5), _record(spun, [False] * 5), symmetric=True)["max_change_deg"] < 1e-9
