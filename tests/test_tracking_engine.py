@@ -202,3 +202,13 @@ def test_annotate_track_bad_documents_exit_2_with_one_line(tmp_path, scene):
     assert empty.read_text() == "category: mug\n"  # nothing of the user's overwritten
     missing = _annotate(str(tmp_path / "nowhere"), "--track")
     assert missing.returncode == 2 and missing.stderr.startswith("error:")
+
+
+def test_a_refinement_round_may_not_carry_a_frame_far_without_a_better_fit():
+    from annotate.tracking.refine import large_step
+
+    config = TrackingConfig()
+    assert large_step(2.0, 0.025, config)  # a laptop sliding along its hinge
+    assert large_step(12.0, 0.001, config)  # a mug spinning on its bottom
+    assert not large_step(2.0, 0.005, config)
+    assert not large_step(12.0, 0.025, TrackingConfig(max_refine_step_deg=0, max_refine_step_m=0))

@@ -22,6 +22,7 @@ class TrackingConfig:
     model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
     max_refine_step_deg: float = 10.0  #: a joint-refinement round turning a frame further keeps its pose (0: no limit)
+    max_refine_step_m: float = 0.02  #: ... and so does one moving it further than this (m; 0: no limit)
     refine_step_fitness_gain: float = 0.05  #: ... unless the turned pose fits the same points by this much better
     settled_deg: float = 0.2  #: ... fewer once a round moved the poses less than this in the median
     settled_m: float = 0.0005  #: ... and less than this (m)
