@@ -75,6 +75,24 @@ def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarra
             yield frame_id, depth, poses[frame_id]
 
 
+#: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``) when a shape
+#: rule pools the voxels' decisions (rings of a symmetric object, the evidence hull of an open container),
+#: and when carving alone decides. The half diagonal keeps a voxel whose centre lies in front of the
+#: measured surface but within reach of it; on a face seen head-on it fattens the object by about that
+#: much. Measured (benchmarks/bench_reconstruct.py --voxel-margin, v5, seeds 0-1 (mugs 0-3), worst extents
+#: error true / 1 deg + 2 mm poses): camera 1.0: +3.8 / +3.8 mm, 0.0: +2.5 / +2.1 mm; laptop 1.0: +3.0 /
+#: +2.4, 0.0: +1.6 / -1.9; but the rings of a bowl lose their rim under pose errors with 0.0 (seed 1 x
+#: -0.7 -> -3.8 mm) and the mug's evidence hull its inside (seed 2 F@1cm 0.991 -> 0.978).
+POOLED_VOXEL_MARGIN = 1.0
+PLAIN_VOXEL_MARGIN = 0.0
+
+
+def default_voxel_margin(pooled: bool) -> float:
+    """The free-space tolerance's half voxel diagonals: POOLED_VOXEL_MARGIN where rings or the evidence hull
+    pool the voxels' decisions (``pooled``), else PLAIN_VOXEL_MARGIN."""
+    return POOLED_VOXEL_MARGIN if pooled else PLAIN_VOXEL_MARGIN
+
+
 def reconstruct_sequence(
     sequence: Sequence,
     annotation: Annotation,
@@ -85,7 +103,7 @@ def reconstruct_sequence(
     margin: float | None = None,
     k: int | None = None,
     tol_sigmas: float = carving.DEFAULT_TOL_SIGMAS,
-    voxel_margin: float = 1.0,
+    voxel_margin: float | None = None,
     silhouette_px: int = 0,
     carved_share: float = carving.DEFAULT_CARVED_SHARE,
     observed_share: bool = True,
@@ -105,6 +123,8 @@ def reconstruct_sequence(
     needs the veto's counts; never for symmetry y); None: for open containers (mugs) only.
     ``observed_share`` (symmetry y, with the veto's counts): a ring is carved when
     carving.OBSERVED_CARVED_SHARE of its observed voxels are, else when ``carved_share`` of all are.
+    ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
+    :func:`default_voxel_margin`.
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -119,6 +139,9 @@ def reconstruct_sequence(
     if grid.size > 60_000_000:
         raise InputError(source, f"voxel grid of {grid.shape} is too large: raise --voxel-size or check the extents")
     k_votes = carving.choose_k(len(ids)) if k is None else int(k)
+    hull = veto is not None and (evidence.applies(annotation.category, annotation.symmetry) if evidence_hull is None else evidence_hull)
+    if voxel_margin is None:
+        voxel_margin = default_voxel_margin(annotation.symmetry == "y" or hull)
     result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked)
     timings["carve"] = time.perf_counter() - start
 
@@ -127,7 +150,7 @@ def reconstruct_sequence(
     if annotation.symmetry == "y":
         observed = None if result.behind_count is None or not observed_share else (result.free_count > 0) | (result.behind_count > 0)
         occupied = carving.revolve_occupancy(occupied, grid, carving.OBSERVED_CARVED_SHARE if observed is not None else carved_share, observed)
-    elif result.behind_count is not None and (evidence.applies(annotation.category, annotation.symmetry) if evidence_hull is None else evidence_hull):
+    elif result.behind_count is not None and hull:
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, result.behind_count)
     timings["symmetry"] = time.perf_counter() - start
