@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
 import open3d as o3d
 
@@ -13,15 +15,20 @@ class FrameStore:
     """Caches each frame's depth (subsampled by ``stride``, metres) and colours; crops them by a box.
 
     A crop back-projects only the pixels inside the box's projected outline (its image rectangle),
-    not the whole frame: a 10 cm object covers a few percent of the image.
+    not the whole frame: a 10 cm object covers a few percent of the image. The last
+    ``crop_cache`` crops are kept: the tracker crops the same frame at the same pose again (a
+    model of the trusted poses is built twice between two pose updates, and the smoothing crops
+    the frames its model was just built from; measured on a v5 laptop: 164 of 1414 crops).
     """
 
-    def __init__(self, sequence: Sequence, stride: int = 2, cache: bool = True, colors: bool = True) -> None:
+    def __init__(self, sequence: Sequence, stride: int = 2, cache: bool = True, colors: bool = True, crop_cache: int = 256) -> None:
         self.sequence = sequence
         self.colors = colors
         self.stride = int(stride)
         self.cache = cache
+        self.crop_cache = int(crop_cache) if cache else 0
         self._frames: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+        self._crops: OrderedDict[tuple, tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
         self.errors: dict[str, str] = {}
 
     def image(self, frame_id: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -44,7 +51,27 @@ class FrameStore:
 
     def crop(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Points (N, 3) m camera frame and colours (N, 3) 0..1 of a frame inside the box at ``pose``
-        (4x4 object to camera, full sides ``extents``) grown by ``margin`` (m); voxel-downsampled to ``voxel``."""
+        (4x4 object to camera, full sides ``extents``) grown by ``margin`` (m); voxel-downsampled to ``voxel``.
+
+        The arrays are the caller's own (a repeated crop returns copies of the kept one).
+        """
+        if self.crop_cache > 0:
+            key = (frame_id, np.asarray(pose, dtype=np.float64).tobytes(), np.asarray(extents, dtype=np.float64).tobytes(), float(margin), voxel)
+            if key in self._crops:
+                self._crops.move_to_end(key)
+                points, colors = self._crops[key]
+            else:
+                points, colors = self._crop(frame_id, pose, extents, margin, voxel)
+                self._crops[key] = (points, colors)
+                if len(self._crops) > self.crop_cache:
+                    self._crops.popitem(last=False)
+            points, colors = points.copy(), (colors.copy() if colors is not None else None)
+        else:
+            points, colors = self._crop(frame_id, pose, extents, margin, voxel)
+        return points, (colors if colors is not None else np.zeros_like(points))
+
+    def _crop(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`crop`'s points and colours (None without colours)."""
         depth, color = self.image(frame_id)
         camera, s = self.sequence.camera, self.stride
         half = np.asarray(extents, dtype=np.float64) / 2 + margin
@@ -79,4 +106,4 @@ class FrameStore:
             cloud = cloud.voxel_down_sample(voxel)
             points = np.asarray(cloud.points)
             colors = np.asarray(cloud.colors) if colors is not None else None
-        return points, (colors if colors is not None else np.zeros_like(points))
+        return points, colors

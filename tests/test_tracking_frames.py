@@ -1,0 +1,76 @@
+"""FrameStore crops: the points of a known wall inside a box, and repeated crops (kept ones) as the caller's own arrays."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from annotate.tracking.frames import FrameStore
+from sequences.camera import Camera
+
+
+class _WallSequence:
+    """A sequence stand-in: every frame sees a flat wall at ``depth`` m, colour = pixel column / 640."""
+
+    def __init__(self, depth: float) -> None:
+        self.camera = Camera()
+        self.depth_m = depth
+        self.reads = 0
+
+    def depth(self, frame_id: str) -> np.ndarray:
+        self.reads += 1
+        return np.full((self.camera.height, self.camera.width), self.depth_m, np.float32)
+
+    def color(self, frame_id: str) -> np.ndarray:
+        u = np.arange(self.camera.width, dtype=np.float64) / self.camera.width * 255
+        return np.broadcast_to(u[None, :, None], (self.camera.height, self.camera.width, 3)).astype(np.uint8)
+
+
+def _box_pose(x: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, 3] = [x, 0.0, 1.0]
+    return pose
+
+
+def test_crop_keeps_the_wall_inside_the_box_and_repeats_exactly():
+    sequence = _WallSequence(1.0)
+    store = FrameStore(sequence, stride=2, colors=True, crop_cache=1)
+    extents = np.array([0.2, 0.1, 0.1])  # full sides, m: the wall at z = 1 lies inside the box's z range
+    points, colors = store.crop("a", _box_pose(0.05), extents, margin=0.0)
+    # independent truth: the stride-2 pixels whose ray meets the wall (z = 1) within x in [-0.05, 0.15], y in [-0.05, 0.05]
+    camera = sequence.camera
+    u = np.arange(0, camera.width, 2)
+    v = np.arange(0, camera.height, 2)
+    x = (u - camera.cx) / camera.fx
+    y = (v - camera.cy) / camera.fy
+    expected = np.count_nonzero((x >= -0.05) & (x <= 0.15)) * np.count_nonzero(np.abs(y) <= 0.05)
+    assert len(points) == expected
+    assert np.allclose(points[:, 2], 1.0)
+    assert points[:, 0].min() >= -0.05 and points[:, 0].max() <= 0.15 and np.abs(points[:, 1]).max() <= 0.05
+    column = np.round(points[:, 0] * camera.fx + camera.cx)  # the pixel column each point came from
+    assert np.allclose(colors[:, 0], np.floor(column / camera.width * 255) / 255, atol=1e-6)
+    # the caller's own arrays: changing them does not change the next crop of the same box
+    kept = points.copy()
+    points[:] = 0.0
+    colors[:] = 0.0
+    again, again_colors = store.crop("a", _box_pose(0.05), extents, margin=0.0)
+    assert np.array_equal(again, kept) and again_colors.max() > 0
+    # another box, then the first again (evicted from a one-crop cache): computed anew, the same points
+    other, _ = store.crop("a", _box_pose(-0.05), extents, margin=0.0)
+    assert other[:, 0].max() <= 0.05
+    assert np.array_equal(store.crop("a", _box_pose(0.05), extents, margin=0.0)[0], kept)
+    # voxel-downsampled: one point per 2 cm voxel of the wall (the box spans 10 x 5 voxels at most)
+    coarse, coarse_colors = store.crop("a", _box_pose(0.05), extents, margin=0.0, voxel=0.02)
+    assert 40 <= len(coarse) <= 66 and coarse_colors.shape == coarse.shape
+    assert sequence.reads == 1  # the frame itself is read once
+
+
+def test_crop_without_colours_gives_zeros_and_an_empty_box_nothing():
+    store = FrameStore(_WallSequence(1.0), stride=2, colors=False)
+    points, colors = store.crop("a", _box_pose(0.0), np.array([0.1, 0.1, 0.1]), margin=0.0)
+    assert len(points) > 0 and colors.shape == points.shape and not colors.any()
+    behind = _box_pose(0.0)
+    behind[2, 3] = 2.0  # a box 1 m behind the wall sees nothing of it
+    points, colors = store.crop("a", behind, np.array([0.1, 0.1, 0.1]), margin=0.0)
+    assert points.shape == (0, 3) and colors.shape == (0, 3)
