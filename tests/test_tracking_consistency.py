@@ -120,3 +120,19 @@ def test_a_gap_no_loss_explains_keeps_its_disagreement():
     assert all(figures[k]["chain_switch"] for k in figures)
     assert all(figures[k]["chain_disagreement_deg"] < 1e-4 for k in range(1, 19))  # the lost chain's stretch
     assert all(abs(figures[k]["chain_disagreement_deg"] - 1.5 * (k - 18)) < 1e-4 for k in range(19, 30))
+
+
+def test_the_model_of_a_badly_tracked_sequence_uses_the_frames_whose_chains_agree_best():
+    from annotate.tracking import TrackingConfig
+    from annotate.tracking.refine import best_agreeing
+
+    config = TrackingConfig()  # thresholds 5 deg, 10 mm
+    truth = _truth(8)
+    # chains' disagreement per frame (deg, m): frame 3 is close in both, frame 5 slid 60 mm along a plane
+    gaps = [(0.0, 0.0), (6.0, 0.002), (1.0, 0.030), (1.0, 0.003), (2.0, 0.004), (0.5, 0.060), (4.0, 0.001), (0.0, 0.0)]
+    results = {f"{k}": FrameResult(T, True, {"chain_disagreement_deg": d, "chain_disagreement_m": m}) for k, (T, (d, m)) in enumerate(zip(truth, gaps))}
+    results["0"] = FrameResult(truth[0], False, {})  # failed: never in the model
+    picked = best_agreeing(results, 4, config)
+    # scores (the larger of deg / 5 and m / 0.01): 7 -> 0, 3 -> 0.3, 4 -> 0.4, 6 -> 0.8, 1 -> 1.2, 2 -> 3, 5 -> 6
+    assert list(picked) == ["3", "4", "6", "7"]  # in frame order
+    assert all(np.array_equal(picked[f], results[f].pose) for f in picked)
