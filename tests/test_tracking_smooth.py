@@ -132,3 +132,29 @@ def test_a_placed_box_sets_a_direction_no_frame_observes():
     out = smooth_poses(spun, [weak_y] * len(spun), np.radians(0.5), 0.0005, priors={5: (target, info)})
     errors = [np.degrees(Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).magnitude()) for a, b in zip(out, truth)]
     assert max(errors) < 0.05, np.round(errors, 3)
+
+
+def test_a_suspect_frame_keeps_its_information_where_the_refinement_confirmed_its_chains():
+    from annotate.tracking import TrackingConfig
+    from annotate.tracking.refine import refinement_confirmed
+    from annotate.tracking.tracker import FrameResult
+
+    config = TrackingConfig()  # chain-disagreement thresholds 5 deg, 10 mm; min fitness 0.5
+    tracker = SimpleNamespace(config=config, symmetric=False)
+    chained = {f: np.eye(4) for f in "abcdef"}
+
+    def moved(deg: float, metres: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("x", deg, degrees=True).as_matrix()
+        T[:3, 3] = [metres, 0.0, 0.0]
+        return T
+
+    results = {
+        "a": FrameResult(moved(2.0, 0.003), True, {"fitness": 0.8}),  # a small correction: confirmed
+        "b": FrameResult(moved(20.0, 0.0), True, {"fitness": 0.9}),  # slid 20 deg (a near-sphere)
+        "c": FrameResult(moved(0.0, 0.015), True, {"fitness": 0.9}),  # slid 15 mm
+        "d": FrameResult(moved(1.0, 0.0), True, {"fitness": 0.3}),  # fits poorly
+        "e": FrameResult(moved(1.0, 0.0), False, {"fitness": 0.9}),  # failed
+        "g": FrameResult(np.eye(4), True, {"fitness": 0.9}),  # no chains' pose
+    }
+    assert refinement_confirmed(tracker, results, chained) == {"a"}
