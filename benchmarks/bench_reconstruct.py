@@ -106,7 +106,7 @@ def main() -> None:
     parser.add_argument("--voxel-size", type=float, default=0.002)
     parser.add_argument("--k", type=int, default=None)
     parser.add_argument("--tol-sigmas", type=float, default=None)
-    parser.add_argument("--voxel-margin", type=float, default=None, help="half voxel diagonals added to the free-space tolerance")
+    parser.add_argument("--voxel-margin", type=float, default=None, help="half voxel diagonals added to the free-space tolerance (default: reconstruct.pipeline.default_voxel_margin)")
     parser.add_argument("--settle", type=int, default=None, help="free votes after which the veto no longer saves a voxel")
     parser.add_argument("--carved-share", type=float, default=None, help="share of a ring (symmetry y) carved for the whole ring to go")
     parser.add_argument("--no-shadows", action="store_true", help="missing depth stays unknown even where a projector shadow explains it")

@@ -75,22 +75,25 @@ def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarra
             yield frame_id, depth, poses[frame_id]
 
 
-#: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``) when a shape
-#: rule pools the voxels' decisions (rings of a symmetric object, the evidence hull of an open container),
-#: and when carving alone decides. The half diagonal keeps a voxel whose centre lies in front of the
-#: measured surface but within reach of it; on a face seen head-on it fattens the object by about that
-#: much. Measured (benchmarks/bench_reconstruct.py --voxel-margin, v5, seeds 0-1 (mugs 0-3), worst extents
-#: error true / 1 deg + 2 mm poses): camera 1.0: +3.8 / +3.8 mm, 0.0: +2.5 / +2.1 mm; laptop 1.0: +3.0 /
-#: +2.4, 0.0: +1.6 / -1.9; but the rings of a bowl lose their rim under pose errors with 0.0 (seed 1 x
-#: -0.7 -> -3.8 mm) and the mug's evidence hull its inside (seed 2 F@1cm 0.991 -> 0.978).
-POOLED_VOXEL_MARGIN = 1.0
+#: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``): where carving
+#: alone decides, for the rings of a symmetric object (symmetry y, with carving.OBSERVED_CARVED_SHARE), and
+#: where the evidence hull (mugs) pools the voxels' decisions. The half diagonal keeps a voxel whose centre
+#: lies in front of the measured surface but within reach of it; on a face seen head-on it fattens the
+#: object by about that much. Measured (benchmarks/bench_reconstruct.py, v5, seeds 0-1 (rings and mugs
+#: 0-3), worst extents error true / 1 deg + 2 mm poses): camera 1.0: +3.8 / +3.8 mm, 0.0: +2.5 / +2.1 mm;
+#: laptop 1.0: +3.0 / +2.4, 0.0: +1.6 / -1.9; rings (ring share 0.5) with 0.0 lose a bowl's rim under
+#: pose errors (seed 1 x -0.7 -> -3.8 mm); rings with 0.5 and ring share 0.6: bottles +2.9 / +2.0 mm,
+#: bowls -1.3 / -1.4, cans +2.0 / +2.0 (1.0 and share 0.5: bottles +2.9 / +2.9, bowls -1.3 / -3.3);
+#: the mug's evidence hull with 0.0 loses its inside (seed 2 F@1cm 0.991 -> 0.978).
 PLAIN_VOXEL_MARGIN = 0.0
+RING_VOXEL_MARGIN = 0.5
+HULL_VOXEL_MARGIN = 1.0
 
 
-def default_voxel_margin(pooled: bool) -> float:
-    """The free-space tolerance's half voxel diagonals: POOLED_VOXEL_MARGIN where rings or the evidence hull
-    pool the voxels' decisions (``pooled``), else PLAIN_VOXEL_MARGIN."""
-    return POOLED_VOXEL_MARGIN if pooled else PLAIN_VOXEL_MARGIN
+def default_voxel_margin(symmetric: bool, hull: bool) -> float:
+    """The free-space tolerance's half voxel diagonals: RING_VOXEL_MARGIN for a ``symmetric`` object (symmetry y),
+    HULL_VOXEL_MARGIN where the evidence ``hull`` applies, else PLAIN_VOXEL_MARGIN."""
+    return RING_VOXEL_MARGIN if symmetric else HULL_VOXEL_MARGIN if hull else PLAIN_VOXEL_MARGIN
 
 
 def reconstruct_sequence(
@@ -141,7 +144,7 @@ def reconstruct_sequence(
     k_votes = carving.choose_k(len(ids)) if k is None else int(k)
     hull = veto is not None and (evidence.applies(annotation.category, annotation.symmetry) if evidence_hull is None else evidence_hull)
     if voxel_margin is None:
-        voxel_margin = default_voxel_margin(annotation.symmetry == "y" or hull)
+        voxel_margin = default_voxel_margin(annotation.symmetry == "y", hull)
     result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked)
     timings["carve"] = time.perf_counter() - start
 
