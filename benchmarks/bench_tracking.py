@@ -195,14 +195,15 @@ def main() -> int:
         backends = [default] + ([b for b in args.backends if b != default] if category in args.compare_on else [])
         for backend in backends:
             row, tracked, truth = run_one(root, backend, args.manual, args.seed, args.profile)
-            record = pose_record(tracked, open_sequence(root).ids)
-            name = f"{category}-s{args.seed}-{backend}.json"
-            if args.poses:
-                Path(args.poses).mkdir(parents=True, exist_ok=True)
-                (Path(args.poses) / name).write_text(json.dumps(record))
-            if args.compare_poses:
-                previous = Path(args.compare_poses) / name
-                row.update(pose_changes(json.loads(previous.read_text()), record, truth.symmetry == "y") if previous.exists() else {"frames_changed": None})
+            if args.poses or args.compare_poses:
+                record = pose_record(tracked, open_sequence(root).ids)
+                name = f"{category}-s{args.seed}-{backend}.json"
+                if args.poses:
+                    Path(args.poses).mkdir(parents=True, exist_ok=True)
+                    (Path(args.poses) / name).write_text(json.dumps(record))
+                if args.compare_poses:
+                    previous = Path(args.compare_poses) / name
+                    row.update(pose_changes(json.loads(previous.read_text()), record, truth.symmetry == "y") if previous.exists() else {"frames_changed": None})
             if args.reconstruct and backend == default:
                 try:
                     row["fscore_5mm_median"] = reconstruction_fscore(root, tracked, truth)
