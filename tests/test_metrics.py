@@ -150,6 +150,39 @@ def test_box_iou_is_symmetric_and_batch_matches_single():
     assert np.all((batch >= 0) & (batch <= 1))
 
 
+def test_box_iou_scratch_buffers_do_not_leak_between_calls_chunks_or_threads():
+    """The polygon work reuses per-thread scratch arrays (box_iou._Workspace): a batch spanning several
+    chunks, a later call and concurrent threads must all give each pair's own one-pair value."""
+    import threading
+
+    from evaluate.metrics.box_iou import _CHUNK
+
+    rng = np.random.default_rng(11)
+    n = _CHUNK // 3  # 8 faces per pair: about 2.7 chunks of polygon rows
+    ea, eb = rng.uniform(0.02, 0.2, (n, 3)), rng.uniform(0.02, 0.2, (n, 3))
+    Ta = np.stack([pose(Rotation.random(random_state=i).as_matrix(), rng.normal(size=3) * 0.02) for i in range(n)])
+    Tb = np.stack([pose(Rotation.random(random_state=500 + i).as_matrix(), rng.normal(size=3) * 0.02) for i in range(n)])
+    single = np.array([box_iou(ea[i], Ta[i], eb[i], Tb[i]) for i in range(n)])
+    first = box_iou_batch(ea, Ta, eb, Tb)
+    np.testing.assert_array_equal(first, single)
+    box_iou_batch(eb[::-1], Tb[::-1], ea[::-1], Ta[::-1])  # overwrites the scratch arrays
+    np.testing.assert_array_equal(first, single)  # the returned array is the caller's own
+    results = {}
+
+    def run(k: int) -> None:
+        order = np.random.default_rng(k).permutation(n)
+        results[k] = (order, [box_iou_batch(ea[order], Ta[order], eb[order], Tb[order]) for _ in range(5)])
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for order, values in results.values():
+        for value in values:
+            np.testing.assert_array_equal(value, single[order])
+
+
 def test_box_iou_monte_carlo_cross_check():
     # loose, independent check: fraction of seeded uniform points of A that fall inside B
     rng = np.random.default_rng(0)

@@ -24,8 +24,10 @@ def finite_array(value, name: str, shape_tail: tuple[int, ...]) -> np.ndarray:
 def rotations(value, name: str) -> np.ndarray:
     """(..., 3, 3) rotation matrices; ValueError unless finite, orthonormal and proper."""
     R = finite_array(value, name, (3, 3))
-    gram = np.einsum("...ji,...jk->...ik", R, R) - np.eye(3)
-    if np.any(np.abs(gram) > ROTATION_TOLERANCE) or np.any(np.abs(np.linalg.det(R) - 1.0) > ROTATION_TOLERANCE):
+    gram = np.matmul(np.swapaxes(R, -1, -2), R) - np.eye(3)
+    # det R = (column 0 x column 1) . column 2
+    det = np.sum(np.cross(R[..., :, 0], R[..., :, 1]) * R[..., :, 2], axis=-1)
+    if np.any(np.abs(gram) > ROTATION_TOLERANCE) or np.any(np.abs(det - 1.0) > ROTATION_TOLERANCE):
         raise ValueError(f"{name}: not a rotation matrix (not orthonormal with determinant +1)")
     return R
 

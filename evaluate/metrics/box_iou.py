@@ -39,6 +39,8 @@ its value times the boxes' area: relative errors ~1e-13, far below cpas_toolbox'
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from evaluate.metrics import _validate
@@ -62,6 +64,8 @@ _OWN_B = _OWN_A + 6
 _FOREIGN_A = np.arange(4, 10)
 _FOREIGN_B = np.arange(0, 6)
 _CHUNK = 1024
+#: Vertex slots of a sorted polygon and, last, the first slot again (closing the shoelace sum).
+_SLOTS = np.append(np.arange(_CANDIDATES), 0)[None, :]
 _CORNERS = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], dtype=np.float64) * 2 - 1
 _FACES = 8  # A's 6 faces and B's +x, -x faces: the others have n_x = 0 in V = integral of x n_x dA
 
@@ -100,10 +104,12 @@ def _intersection_volume(half_a: np.ndarray, half_b: np.ndarray, R: np.ndarray, 
     abs_fp, sign_fp = np.abs(n_fp), np.sign(n_fp)
 
     other = _OTHER[:_FACES]
-    nk = normals[:, other]  # (M, 8, 10, 3)
     ok = offsets[:, other]  # (M, 8, 10)
-    face_axes = lambda axis: np.broadcast_to(axis[..., None], (M, _FACES, 10))  # noqa: E731
-    n_kp, n_ks, n_kr = (_pick(nk, face_axes(a)) for a in (proj[:, :_FACES], s_axis, r_axis))
+    # Component ``axis`` (M, 8) of the 10 bounding planes' normals of each face, gathered from the flat
+    # normals in one take each (no (M, 8, 10, 3) copy).
+    plane_start = (36 * np.arange(M))[:, None, None] + 3 * other[None]  # (M, 8, 10)
+    flat_normals = normals.reshape(-1)
+    n_kp, n_ks, n_kr = (flat_normals.take(plane_start + a[..., None]) for a in (proj[:, :_FACES], s_axis, r_axis))
     # Constraint n_k·x <= o_k for x on face F, x_p eliminated, scaled by |n_Fp| > 0.  The operation order
     # matters: for a face of A and the B plane with the same normal direction it yields exactly the
     # negation of the B face's constraint from that A plane (see the module docstring).
@@ -168,36 +174,105 @@ def _quad_meets_other_box(a_s, a_r, b, tol, own, foreign):
     return ~np.any(np.all(r > tol[..., None], axis=-2), axis=-1)
 
 
+class _Workspace(threading.local):
+    """Scratch arrays of :func:`_polygon_moments`, allocated once per thread for ``_CHUNK`` rows and reused.
+
+    Why: a call's temporaries come to several MB; glibc hands freed heap tops back to the kernel
+    (trimming) and page-faults them in again on the next call, which cost 40-80% of a call in
+    about half of all processes (0 vs ~1500 minor faults per 200-pair batch, depending on the
+    heap's layout).  Writing every large temporary into these buffers makes the time of a call
+    independent of the allocator's state.
+    """
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, n: int, shape: tuple[int, ...] = (_CANDIDATES,), dtype=np.float64) -> np.ndarray:
+        """The first ``n`` rows of the buffer ``name`` of shape (_CHUNK, *shape) (contents undefined)."""
+        array = self._arrays.get(name)
+        if array is None:
+            array = self._arrays[name] = np.empty((_CHUNK,) + shape, dtype=dtype)
+        return array[:n]
+
+    def residual(self, n: int) -> np.ndarray:
+        """A contiguous (10, n, 40) scratch array (n <= _CHUNK)."""
+        flat = self._arrays.get("residual")
+        if flat is None:
+            flat = self._arrays["residual"] = np.empty(10 * _CHUNK * _CANDIDATES)
+        return flat[:10 * n * _CANDIDATES].reshape(10, n, _CANDIDATES)
+
+
+_WORKSPACE = _Workspace()
+
+
 def _polygon_moments(a_s, a_r, b, tol):
     """Area and first moments (integral of s, of r) of the convex polygons {p : a_s p_s + a_r p_r <= b (+tol)},
-    one per row (rows are (10,) lines); shape (3, rows)."""
+    one per row (rows are (10,) lines, at most ``_CHUNK`` of them); shape (3, rows).
+
+    Every (rows, 40) and larger temporary lives in :data:`_WORKSPACE` (``out=`` throughout), see there.
+    """
     n = len(a_s)
-    ps, pr, valid = _line_intersections(a_s, a_r, b, _PAIR_K, _PAIR_L)
-    # Residuals of all candidates against all 10 lines as one batched matrix product; the (10, 40)
-    # layout makes the max over lines a reduction over a leading axis, several times faster in NumPy.
-    points = np.stack([ps, pr, -np.ones_like(ps)], axis=1)  # (n, 3, 40)
-    lines = np.stack([a_s, a_r, b], axis=2)  # (n, 10, 3)
-    worst = np.max(np.matmul(lines, points), axis=1)
-    feasible = valid & (worst <= tol[:, None])
+    ws = _WORKSPACE
+    f = lambda name: ws.get(name, n)  # noqa: E731  a (n, 40) float scratch array
+    # Candidate vertices: the intersections of the 40 non-parallel line pairs, written straight into the
+    # (n, 3, 40) right-hand side of the residual product below (rows s, r, -1).
+    points = ws.get("points", n, (3, _CANDIDATES))
+    ps, pr = points[:, 0], points[:, 1]
+    points[:, 2] = -1.0
+    as1, ar1, b1 = (np.take(x, _PAIR_K, axis=1, out=f(name), mode="clip") for x, name in ((a_s, "as1"), (a_r, "ar1"), (b, "b1")))
+    as2, ar2, b2 = (np.take(x, _PAIR_L, axis=1, out=f(name), mode="clip") for x, name in ((a_s, "as2"), (a_r, "ar2"), (b, "b2")))
+    det, tmp = f("det"), f("tmp")
+    np.subtract(np.multiply(as1, ar2, out=det), np.multiply(ar1, as2, out=tmp), out=det)
+    valid = np.greater(np.abs(det, out=tmp), 1e-20, out=ws.get("valid", n, dtype=bool))  # False: parallel lines
+    np.copyto(det, 1.0, where=np.logical_not(valid, out=ws.get("invalid", n, dtype=bool)))
+    np.subtract(np.multiply(b1, ar2, out=ps), np.multiply(b2, ar1, out=tmp), out=ps)
+    np.divide(ps, det, out=ps)
+    np.subtract(np.multiply(as1, b2, out=pr), np.multiply(as2, b1, out=tmp), out=pr)
+    np.divide(pr, det, out=pr)
+    # Residuals of all candidates against all 10 lines as one batched matrix product (n, 10, 40), stored
+    # line-major (10, n, 40) so that the max over lines is an elementwise max of 10 contiguous slabs.
+    lines = ws.get("lines", n, (10, 3))
+    lines[..., 0], lines[..., 1], lines[..., 2] = a_s, a_r, b
+    residual = ws.residual(n)
+    np.matmul(lines, points, out=residual.transpose(1, 0, 2))
+    worst = np.max(residual, axis=0, out=f("worst"))
+    feasible = np.logical_and(valid, np.less_equal(worst, tol[:, None], out=ws.get("feasible", n, dtype=bool)),
+                              out=ws.get("feasible", n, dtype=bool))
+    infeasible = np.logical_not(feasible, out=ws.get("invalid", n, dtype=bool))
     count = feasible.sum(axis=1)
     denom = np.maximum(count, 1)
-    cs = np.where(feasible, ps, 0.0).sum(axis=1) / denom
-    cr = np.where(feasible, pr, 0.0).sum(axis=1) / denom
-    qs, qr = ps - cs[:, None], pr - cr[:, None]
-    # Sort by a pseudo-angle (monotone in the true angle, cheaper than arctan2).
-    d = np.abs(qs) + np.abs(qr)
-    pseudo = np.where(d > 0, qr / np.where(d > 0, d, 1.0), 0.0)
-    pseudo = np.where(qs >= 0, pseudo, 2.0 - pseudo)
-    order = np.argsort(np.where(feasible, pseudo, np.inf), axis=1)
+    tmp[...] = 0.0
+    np.copyto(tmp, ps, where=feasible)
+    cs = tmp.sum(axis=1) / denom
+    tmp[...] = 0.0
+    np.copyto(tmp, pr, where=feasible)
+    cr = tmp.sum(axis=1) / denom
+    qs = np.subtract(ps, cs[:, None], out=f("qs"))
+    qr = np.subtract(pr, cr[:, None], out=f("qr"))
+    # Sort by a pseudo-angle (monotone in the true angle, cheaper than arctan2): qr / (|qs| + |qr|) for
+    # qs >= 0, 2 minus that for qs < 0, 0 at the centre.
+    d = np.add(np.abs(qs, out=tmp), np.abs(qr, out=det), out=tmp)
+    positive = np.greater(d, 0.0, out=ws.get("valid", n, dtype=bool))
+    pseudo = f("pseudo")
+    pseudo[...] = 0.0
+    np.divide(qr, d, out=pseudo, where=positive)
+    np.copyto(pseudo, np.subtract(2.0, pseudo, out=det), where=np.less(qs, 0.0, out=ws.get("valid", n, dtype=bool)))
+    np.copyto(pseudo, np.inf, where=infeasible)
+    order = np.argsort(pseudo, axis=1)
     # Slots past the last feasible vertex repeat it, which adds nothing to the shoelace sums.
-    slot = np.minimum(np.arange(_CANDIDATES)[None, :], np.maximum(count - 1, 0)[:, None])
-    idx = (np.take_along_axis(order, slot, axis=1) + _CANDIDATES * np.arange(n)[:, None]).ravel()
-    qs, qr = qs.ravel()[idx].reshape(n, _CANDIDATES), qr.ravel()[idx].reshape(n, _CANDIDATES)
-    qs2, qr2 = np.roll(qs, -1, axis=1), np.roll(qr, -1, axis=1)
-    cross = qs * qr2 - qs2 * qr
+    row_start = (_CANDIDATES * np.arange(n))[:, None]
+    # A 41st slot repeats the first vertex, so that slots 1..40 are the next vertex round the polygon.
+    wrap = (_CANDIDATES + 1,)
+    slot = np.minimum(_SLOTS, np.maximum(count - 1, 0)[:, None], out=ws.get("slot", n, wrap, dtype=np.intp))
+    idx = np.take(order, np.add(slot, row_start, out=slot), out=ws.get("idx", n, wrap, dtype=np.intp), mode="clip")
+    np.add(idx, row_start, out=idx)
+    sorted_s = np.take(qs.reshape(-1), idx, out=ws.get("qs_sorted", n, wrap), mode="clip")
+    sorted_r = np.take(qr.reshape(-1), idx, out=ws.get("qr_sorted", n, wrap), mode="clip")
+    qs, qs2, qr, qr2 = sorted_s[:, :-1], sorted_s[:, 1:], sorted_r[:, :-1], sorted_r[:, 1:]
+    cross = np.subtract(np.multiply(qs, qr2, out=f("cross")), np.multiply(qs2, qr, out=tmp), out=f("cross"))
     area = 0.5 * cross.sum(axis=1)
-    m_s = ((qs + qs2) * cross).sum(axis=1) / 6.0
-    m_r = ((qr + qr2) * cross).sum(axis=1) / 6.0
+    m_s = np.multiply(np.add(qs, qs2, out=tmp), cross, out=tmp).sum(axis=1) / 6.0
+    m_r = np.multiply(np.add(qr, qr2, out=tmp), cross, out=tmp).sum(axis=1) / 6.0
     sign = np.where(count >= 3, np.sign(area), 0.0)  # vertices sorted either way round; empty -> 0
     area, m_s, m_r = sign * area, sign * m_s, sign * m_r
     return np.stack([area, m_s + cs * area, m_r + cr * area])  # moments about the (s, r) origin
