@@ -8,7 +8,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from reconstruct import carving, meshing
-from reconstruct.masks import ClusterRenderer, MeshRenderer, render_masks, visible_mask
+from reconstruct.masks import MeshRenderer, render_masks, visible_mask
 from reconstruct.pipeline import reconstruct_sequence
 from reconstruct.tight_box import fit_tight_box, recentre_pose
 from sequences.annotation import load_annotation
@@ -358,35 +358,51 @@ def test_mask_matches_independent_render_and_drops_occluded_pixels():
     assert not MeshRenderer(mesh, camera).depth(behind).any()
 
 
-def test_cluster_renderer_casts_fewer_rays_for_the_same_depth():
+def _cast_every_pixel(mesh: trimesh.Trimesh, pose: np.ndarray, camera: Camera) -> np.ndarray:
+    """Independent reference: the posed mesh in camera coordinates, one float64-built ray per pixel."""
+    import open3d as o3d
+
+    posed = mesh.copy()
+    posed.apply_transform(pose)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(posed.vertices.astype(np.float32)), o3d.core.Tensor(posed.faces.astype(np.uint32)))
+    directions = camera.pixel_rays().reshape(-1, 3)
+    rays = np.concatenate([np.zeros_like(directions), directions], axis=1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(camera.shape)
+    return np.where(np.isfinite(hit), hit, 0.0)
+
+
+def test_renderer_casts_only_its_face_clusters_rectangles_for_the_same_depth():
     # an L of two boxes (a laptop's shape): half of its bounding box's rectangle is background
     camera = Camera(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
     base = trimesh.creation.box([0.3, 0.01, 0.2])
     lid = trimesh.creation.box([0.3, 0.2, 0.01])
     lid.apply_translation([0, 0.105, -0.095])
     mesh = trimesh.util.concatenate([base, lid])
-    whole, clustered = MeshRenderer(mesh, camera), ClusterRenderer(mesh, camera, cells=8)
+    renderer = MeshRenderer(mesh, camera, cells=8)
     rng = np.random.default_rng(3)
     rays = rectangles = 0
     for angles in rng.uniform(-60, 60, size=(5, 3)):
         pose = np.eye(4)
         pose[:3, :3] = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
         pose[:3, 3] = [0.02, -0.01, 0.7]
-        expected, depth = whole.depth(pose), clustered.depth(pose)
+        expected, depth = _cast_every_pixel(mesh, pose, camera), renderer.depth(pose)
         assert (expected > 0).sum() > 2000
-        # the rays' directions are summed in float32 (the whole rectangle's by a float64 product): a grazing ray may differ
+        # the rays' directions are summed in float32 (the reference's built in float64): a grazing ray may differ
         assert ((depth > 0) != (expected > 0)).sum() <= 2
         both = (depth > 0) & (expected > 0)
         np.testing.assert_allclose(depth[both], expected[both], atol=1e-5)
         uv, _ = camera.project(trimesh.bounds.corners(mesh.bounds) @ pose[:3, :3].T + pose[:3, 3])
-        size = np.minimum(np.ceil(uv.max(axis=0)) + 1, [319, 239]) - np.maximum(np.floor(uv.min(axis=0)) - 1, 0) + 1  # MeshRenderer's rectangle
-        assert (expected > 0).sum() <= clustered.cover(pose).sum() <= size.prod()
-        rays, rectangles = rays + clustered.cover(pose).sum(), rectangles + size.prod()
-    assert rays < 0.8 * rectangles  # the whole rectangle's rays
-    # a box reaching behind the camera: the whole rectangle, as MeshRenderer
+        size = np.minimum(np.ceil(uv.max(axis=0)) + 1, [319, 239]) - np.maximum(np.floor(uv.min(axis=0)) - 1, 0) + 1  # the bounding box's rectangle
+        assert (expected > 0).sum() <= renderer.cover(pose).sum() <= size.prod()
+        rays, rectangles = rays + renderer.cover(pose).sum(), rectangles + size.prod()
+    assert rays < 0.8 * rectangles
+    # a box reaching behind the camera: every pixel is cast, the depth is still right
     pose = np.eye(4)
     pose[2, 3] = 0.05
-    np.testing.assert_array_equal(clustered.depth(pose), whole.depth(pose))
+    assert renderer.cover(pose).all()
+    expected, depth = _cast_every_pixel(mesh, pose, camera), renderer.depth(pose)
+    assert (expected > 0).sum() > 1000 and ((depth > 0) != (expected > 0)).sum() <= 2
 
 
 # --- pipeline on analytic scenes -----------------------------------------------------------------
