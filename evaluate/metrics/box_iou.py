@@ -56,6 +56,7 @@ _OTHER = np.array([[k for k in range(12) if k // 2 != f // 2] for f in range(12)
 _PAIR_K, _PAIR_L = np.triu_indices(10, k=1)
 _PAIR_K, _PAIR_L = _PAIR_K[_PAIR_K // 2 != _PAIR_L // 2], _PAIR_L[_PAIR_K // 2 != _PAIR_L // 2]
 _CANDIDATES = len(_PAIR_K)  # 40
+_VERTICES = 10  # a convex polygon bounded by 10 lines has at most 10 distinct vertices
 _SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
 # Positions in _OTHER[f] of a face's own box's 4 neighbouring planes (first 4 for A's faces, last 4 for
 # B's) and of the other box's 6 planes; the own quad's corners are the pairs of non-parallel neighbours.
@@ -64,8 +65,6 @@ _OWN_B = _OWN_A + 6
 _FOREIGN_A = np.arange(4, 10)
 _FOREIGN_B = np.arange(0, 6)
 _CHUNK = 1024
-#: Vertex slots of a sorted polygon and, last, the first slot again (closing the shoelace sum).
-_SLOTS = np.append(np.arange(_CANDIDATES), 0)[None, :]
 _CORNERS = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], dtype=np.float64) * 2 - 1
 _FACES = 8  # A's 6 faces and B's +x, -x faces: the others have n_x = 0 in V = integral of x n_x dA
 
@@ -175,31 +174,26 @@ def _quad_meets_other_box(a_s, a_r, b, tol, own, foreign):
 
 
 class _Workspace(threading.local):
-    """Scratch arrays of :func:`_polygon_moments`, allocated once per thread for ``_CHUNK`` rows and reused.
+    """Scratch arrays of :func:`_polygon_moments`, kept per thread and reused from call to call.
 
     Why: a call's temporaries come to several MB; glibc hands freed heap tops back to the kernel
     (trimming) and page-faults them in again on the next call, which cost 40-80% of a call in
     about half of all processes (0 vs ~1500 minor faults per 200-pair batch, depending on the
-    heap's layout).  Writing every large temporary into these buffers makes the time of a call
-    independent of the allocator's state.
+    heap's layout).  Writing the large temporaries into these buffers makes the time of a call
+    independent of the allocator's state.  Their sizes are bounded by ``_CHUNK`` rows (~8 MB).
     """
 
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
 
-    def get(self, name: str, n: int, shape: tuple[int, ...] = (_CANDIDATES,), dtype=np.float64) -> np.ndarray:
-        """The first ``n`` rows of the buffer ``name`` of shape (_CHUNK, *shape) (contents undefined)."""
+    def get(self, name: str, shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
+        """A contiguous array of ``shape`` in the buffer ``name`` (contents undefined; valid until the
+        next ``get`` of that name)."""
+        size = int(np.prod(shape))
         array = self._arrays.get(name)
-        if array is None:
-            array = self._arrays[name] = np.empty((_CHUNK,) + shape, dtype=dtype)
-        return array[:n]
-
-    def residual(self, n: int) -> np.ndarray:
-        """A contiguous (10, n, 40) scratch array (n <= _CHUNK)."""
-        flat = self._arrays.get("residual")
-        if flat is None:
-            flat = self._arrays["residual"] = np.empty(10 * _CHUNK * _CANDIDATES)
-        return flat[:10 * n * _CANDIDATES].reshape(10, n, _CANDIDATES)
+        if array is None or array.size < size or array.dtype != dtype:
+            array = self._arrays[name] = np.empty(max(size, 2 * (0 if array is None else array.size)), dtype=dtype)
+        return array[:size].reshape(shape)
 
 
 _WORKSPACE = _Workspace()
@@ -213,69 +207,94 @@ def _polygon_moments(a_s, a_r, b, tol):
     """
     n = len(a_s)
     ws = _WORKSPACE
-    f = lambda name: ws.get(name, n)  # noqa: E731  a (n, 40) float scratch array
+    f = lambda name: ws.get(name, (n, _CANDIDATES))  # noqa: E731  an (n, 40) float scratch array
     # Candidate vertices: the intersections of the 40 non-parallel line pairs, written straight into the
     # (n, 3, 40) right-hand side of the residual product below (rows s, r, -1).
-    points = ws.get("points", n, (3, _CANDIDATES))
-    ps, pr = points[:, 0], points[:, 1]
-    points[:, 2] = -1.0
+    ps, pr = f("ps"), f("pr")
     as1, ar1, b1 = (np.take(x, _PAIR_K, axis=1, out=f(name), mode="clip") for x, name in ((a_s, "as1"), (a_r, "ar1"), (b, "b1")))
     as2, ar2, b2 = (np.take(x, _PAIR_L, axis=1, out=f(name), mode="clip") for x, name in ((a_s, "as2"), (a_r, "ar2"), (b, "b2")))
     det, tmp = f("det"), f("tmp")
     np.subtract(np.multiply(as1, ar2, out=det), np.multiply(ar1, as2, out=tmp), out=det)
-    valid = np.greater(np.abs(det, out=tmp), 1e-20, out=ws.get("valid", n, dtype=bool))  # False: parallel lines
-    np.copyto(det, 1.0, where=np.logical_not(valid, out=ws.get("invalid", n, dtype=bool)))
+    valid = np.greater(np.abs(det, out=tmp), 1e-20, out=ws.get("valid", (n, _CANDIDATES), dtype=bool))  # False: parallel lines
+    np.copyto(det, 1.0, where=np.logical_not(valid, out=ws.get("invalid", (n, _CANDIDATES), dtype=bool)))
     np.subtract(np.multiply(b1, ar2, out=ps), np.multiply(b2, ar1, out=tmp), out=ps)
     np.divide(ps, det, out=ps)
     np.subtract(np.multiply(as1, b2, out=pr), np.multiply(as2, b1, out=tmp), out=pr)
     np.divide(pr, det, out=pr)
     # Residuals of all candidates against all 10 lines as one batched matrix product (n, 10, 40), stored
     # line-major (10, n, 40) so that the max over lines is an elementwise max of 10 contiguous slabs.
-    lines = ws.get("lines", n, (10, 3))
+    points = ws.get("points", (n, 3, _CANDIDATES))
+    points[:, 0], points[:, 1], points[:, 2] = ps, pr, -1.0
+    lines = ws.get("lines", (n, 10, 3))
     lines[..., 0], lines[..., 1], lines[..., 2] = a_s, a_r, b
-    residual = ws.residual(n)
+    residual = ws.get("residual", (10, n, _CANDIDATES))
     np.matmul(lines, points, out=residual.transpose(1, 0, 2))
     worst = np.max(residual, axis=0, out=f("worst"))
-    feasible = np.logical_and(valid, np.less_equal(worst, tol[:, None], out=ws.get("feasible", n, dtype=bool)),
-                              out=ws.get("feasible", n, dtype=bool))
-    infeasible = np.logical_not(feasible, out=ws.get("invalid", n, dtype=bool))
+    feasible = np.logical_and(valid, np.less_equal(worst, tol[:, None], out=ws.get("feasible", (n, _CANDIDATES), dtype=bool)),
+                              out=ws.get("feasible", (n, _CANDIDATES), dtype=bool))
     count = feasible.sum(axis=1)
-    denom = np.maximum(count, 1)
-    tmp[...] = 0.0
-    np.copyto(tmp, ps, where=feasible)
-    cs = tmp.sum(axis=1) / denom
-    tmp[...] = 0.0
-    np.copyto(tmp, pr, where=feasible)
-    cr = tmp.sum(axis=1) / denom
-    qs = np.subtract(ps, cs[:, None], out=f("qs"))
-    qr = np.subtract(pr, cr[:, None], out=f("qr"))
+    moments = np.zeros((3, n))
+    # Rows with fewer than 3 vertices have no area.  A polygon bounded by 10 lines has at most 10
+    # vertices, but where more lines meet in one point (touching boxes) it gets that vertex several
+    # times: such rows take the full width.  The width depends on the row alone, so a pair's IoU does not
+    # depend on the other pairs in its batch.
+    for width, rows in ((_VERTICES, (count >= 3) & (count <= _VERTICES)), (_CANDIDATES, count > _VERTICES)):
+        if rows.any():
+            _shoelace_moments(ps, pr, feasible, count, rows, width, moments)
+    return moments
+
+
+def _shoelace_moments(ps, pr, feasible, count, rows, width, moments) -> None:
+    """Area and first moments of the polygons of the selected ``rows`` (n,) bool, written into
+    ``moments`` (3, n); their vertices are the ``feasible`` (n, 40) candidates (ps, pr), at most ``width``.
+
+    The vertices are compacted to the left of (m, width) arrays, sorted by angle about their mean
+    and summed by the shoelace formula (scratch arrays from :data:`_WORKSPACE`).
+    """
+    ws = _WORKSPACE
+    n = len(ps)
+    selected = np.flatnonzero(rows)
+    m = len(selected)
+    count = np.where(rows, count, 0)
+    # Scatter the vertices: the k-th vertex of the i-th selected row goes to slot (i, k) of (m, width).
+    flat = np.flatnonzero(feasible & rows[:, None])  # row-major: each row's vertices in a run
+    row = flat // _CANDIDATES
+    before = np.cumsum(count) - count  # vertices of the rows before each row
+    dest = np.arange(len(flat)) - before[row] + (np.cumsum(rows) - 1)[row] * width
+    g = lambda name, w=width: ws.get(f"{name}{w}", (m, w))  # noqa: E731  an (m, w) float scratch array
+    vs, vr = g("vs"), g("vr")
+    vs[...], vr[...] = 0.0, 0.0  # slots past a row's last vertex stay 0
+    vs.reshape(-1)[dest], vr.reshape(-1)[dest] = ps.reshape(-1)[flat], pr.reshape(-1)[flat]
+    count = count[selected]
+    cs, cr = vs.sum(axis=1) / count, vr.sum(axis=1) / count  # the vertices' mean, inside the polygon
+    qs, qr = np.subtract(vs, cs[:, None], out=g("qs")), np.subtract(vr, cr[:, None], out=g("qr"))
     # Sort by a pseudo-angle (monotone in the true angle, cheaper than arctan2): qr / (|qs| + |qr|) for
-    # qs >= 0, 2 minus that for qs < 0, 0 at the centre.
-    d = np.add(np.abs(qs, out=tmp), np.abs(qr, out=det), out=tmp)
-    positive = np.greater(d, 0.0, out=ws.get("valid", n, dtype=bool))
-    pseudo = f("pseudo")
+    # qs >= 0, 2 minus that for qs < 0, 0 at the mean; slots past the last vertex last.
+    d = np.add(np.abs(qs, out=g("d")), np.abs(qr, out=g("t")), out=g("d"))
+    pseudo = g("pseudo")
     pseudo[...] = 0.0
-    np.divide(qr, d, out=pseudo, where=positive)
-    np.copyto(pseudo, np.subtract(2.0, pseudo, out=det), where=np.less(qs, 0.0, out=ws.get("valid", n, dtype=bool)))
-    np.copyto(pseudo, np.inf, where=infeasible)
+    np.divide(qr, d, out=pseudo, where=d > 0)
+    np.copyto(pseudo, np.subtract(2.0, pseudo, out=g("t")), where=qs < 0)
+    np.copyto(pseudo, np.inf, where=np.arange(width)[None, :] >= count[:, None])
     order = np.argsort(pseudo, axis=1)
-    # Slots past the last feasible vertex repeat it, which adds nothing to the shoelace sums.
-    row_start = (_CANDIDATES * np.arange(n))[:, None]
-    # A 41st slot repeats the first vertex, so that slots 1..40 are the next vertex round the polygon.
-    wrap = (_CANDIDATES + 1,)
-    slot = np.minimum(_SLOTS, np.maximum(count - 1, 0)[:, None], out=ws.get("slot", n, wrap, dtype=np.intp))
-    idx = np.take(order, np.add(slot, row_start, out=slot), out=ws.get("idx", n, wrap, dtype=np.intp), mode="clip")
+    # Slots past the last vertex repeat it, which adds nothing to the shoelace sums; a last slot repeats
+    # the first vertex, so that slots 1..width are the next vertex round the polygon.
+    slot = np.minimum(np.append(np.arange(width), 0)[None, :], (count - 1)[:, None],
+                      out=ws.get(f"slot{width}", (m, width + 1), dtype=np.intp))
+    row_start = (width * np.arange(m))[:, None]
+    idx = np.take(order, np.add(slot, row_start, out=slot), out=ws.get(f"idx{width}", (m, width + 1), dtype=np.intp))
     np.add(idx, row_start, out=idx)
-    sorted_s = np.take(qs.reshape(-1), idx, out=ws.get("qs_sorted", n, wrap), mode="clip")
-    sorted_r = np.take(qr.reshape(-1), idx, out=ws.get("qr_sorted", n, wrap), mode="clip")
+    sorted_s = np.take(qs.reshape(-1), idx, out=g("sorted_s", width + 1))
+    sorted_r = np.take(qr.reshape(-1), idx, out=g("sorted_r", width + 1))
     qs, qs2, qr, qr2 = sorted_s[:, :-1], sorted_s[:, 1:], sorted_r[:, :-1], sorted_r[:, 1:]
-    cross = np.subtract(np.multiply(qs, qr2, out=f("cross")), np.multiply(qs2, qr, out=tmp), out=f("cross"))
+    cross = np.subtract(np.multiply(qs, qr2, out=g("cross")), np.multiply(qs2, qr, out=g("t")), out=g("cross"))
+    t = g("t")
     area = 0.5 * cross.sum(axis=1)
-    m_s = np.multiply(np.add(qs, qs2, out=tmp), cross, out=tmp).sum(axis=1) / 6.0
-    m_r = np.multiply(np.add(qr, qr2, out=tmp), cross, out=tmp).sum(axis=1) / 6.0
-    sign = np.where(count >= 3, np.sign(area), 0.0)  # vertices sorted either way round; empty -> 0
+    m_s = np.multiply(np.add(qs, qs2, out=t), cross, out=t).sum(axis=1) / 6.0
+    m_r = np.multiply(np.add(qr, qr2, out=t), cross, out=t).sum(axis=1) / 6.0
+    sign = np.sign(area)  # vertices sorted either way round
     area, m_s, m_r = sign * area, sign * m_s, sign * m_r
-    return np.stack([area, m_s + cs * area, m_r + cr * area])  # moments about the (s, r) origin
+    moments[:, selected] = area, m_s + cs * area, m_r + cr * area  # moments about the (s, r) origin
 
 
 def _iou_from_volumes(inter: np.ndarray, vol_a: np.ndarray, vol_b: np.ndarray, a_in_b: np.ndarray,
