@@ -64,6 +64,11 @@ _OWN_A = np.array([[0, 2], [0, 3], [1, 2], [1, 3]])
 _OWN_B = _OWN_A + 6
 _FOREIGN_A = np.arange(4, 10)
 _FOREIGN_B = np.arange(0, 6)
+# The same for the 8 faces at once, as indices into a pair's (8 faces x 10 lines) flattened rows.
+_FACE_ROW = 10 * np.arange(8)[:, None]
+_QUAD_K = np.concatenate([np.tile(_OWN_A[:, 0], (6, 1)), np.tile(_OWN_B[:, 0], (2, 1))]) + _FACE_ROW  # (8, 4)
+_QUAD_L = np.concatenate([np.tile(_OWN_A[:, 1], (6, 1)), np.tile(_OWN_B[:, 1], (2, 1))]) + _FACE_ROW
+_QUAD_FOREIGN = np.concatenate([np.tile(_FOREIGN_A, (6, 1)), np.tile(_FOREIGN_B, (2, 1))]) + _FACE_ROW  # (8, 6)
 _CHUNK = 1024
 _CORNERS = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], dtype=np.float64) * 2 - 1
 _FACES = 8  # A's 6 faces and B's +x, -x faces: the others have n_x = 0 in V = integral of x n_x dA
@@ -123,7 +128,7 @@ def _intersection_volume(half_a: np.ndarray, half_b: np.ndarray, R: np.ndarray, 
     other_is_a = (other < 6)[None]
     # Only nearly parallel pairs need it (|a| ~ sine of the angle between the planes); elsewhere a shift
     # would open a gap of width tau along the seam for nothing.
-    same_dir &= np.hypot(a_s, a_r) < _PARALLEL
+    same_dir &= a_s * a_s + a_r * a_r < _PARALLEL**2
     shift = np.where(same_dir & face_is_a & ~other_is_a, tau[:, None, None], 0.0)
     shift = np.where(same_dir & ~face_is_a & other_is_a, -tau[:, None, None], shift)
     b = b + shift
@@ -131,10 +136,7 @@ def _intersection_volume(half_a: np.ndarray, half_b: np.ndarray, R: np.ndarray, 
     # Faces whose own quad lies wholly outside one of the other box's planes are empty: skip them.
     F = M * _FACES
     tol_f = np.repeat(tol, _FACES)
-    active = np.concatenate([
-        _quad_meets_other_box(a_s[:, :6], a_r[:, :6], b[:, :6], tol[:, None, None], _OWN_A, _FOREIGN_A),
-        _quad_meets_other_box(a_s[:, 6:], a_r[:, 6:], b[:, 6:], tol[:, None, None], _OWN_B, _FOREIGN_B),
-    ], axis=1).reshape(F)
+    active = _quad_meets_other_box(a_s, a_r, b, tol).reshape(F)
     a_s, a_r, b = a_s.reshape(F, 10), a_r.reshape(F, 10), b.reshape(F, 10)
     moments = np.zeros((3, F))  # area, integral of s, integral of r, in the (s, r) plane
     rows = np.flatnonzero(active)
@@ -166,11 +168,17 @@ def _line_intersections(a_s, a_r, b, k, l):
     return (b1 * ar2 - b2 * ar1) / det, (as1 * b2 - as2 * b1) / det, valid
 
 
-def _quad_meets_other_box(a_s, a_r, b, tol, own, foreign):
-    """False where a face's own quad lies wholly outside one of the other box's planes (empty face)."""
-    cs, cr, _ = _line_intersections(a_s, a_r, b, own[:, 0], own[:, 1])  # (..., 4) quad corners
-    r = a_s[..., None, foreign] * cs[..., None] + a_r[..., None, foreign] * cr[..., None] - b[..., None, foreign]
-    return ~np.any(np.all(r > tol[..., None], axis=-2), axis=-1)
+def _quad_meets_other_box(a_s, a_r, b, tol):
+    """(M, 8) False where a face's own quad lies wholly outside one of the other box's planes (empty face).
+
+    a_s, a_r, b: (M, 8, 10) the faces' bounding lines; tol: (M,)."""
+    M = len(a_s)
+    s_, r_, b_ = a_s.reshape(M, -1), a_r.reshape(M, -1), b.reshape(M, -1)
+    k, l = _QUAD_K, _QUAD_L  # (8, 4) the lines meeting at each corner of each face's own quad
+    cs, cr, _ = _line_intersections(s_, r_, b_, k, l)  # (M, 8, 4) quad corners
+    fs, fr, fb = (x[:, _QUAD_FOREIGN][:, :, None, :] for x in (s_, r_, b_))  # (M, 8, 1, 6) the other box's lines
+    r = fs * cs[..., None] + fr * cr[..., None] - fb
+    return ~np.any(np.all(r > tol[:, None, None, None], axis=2), axis=2)
 
 
 class _Workspace(threading.local):
