@@ -25,8 +25,10 @@ def rotations(value, name: str) -> np.ndarray:
     """(..., 3, 3) rotation matrices; ValueError unless finite, orthonormal and proper."""
     R = finite_array(value, name, (3, 3))
     gram = np.matmul(np.swapaxes(R, -1, -2), R) - np.eye(3)
-    # det R = (column 0 x column 1) . column 2
-    det = np.sum(np.cross(R[..., :, 0], R[..., :, 1]) * R[..., :, 2], axis=-1)
+    # det R by cofactors along the first row (np.linalg.det's LU costs more for a stack of 3x3)
+    r = [[R[..., i, j] for j in range(3)] for i in range(3)]
+    det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+           + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
     if np.any(np.abs(gram) > ROTATION_TOLERANCE) or np.any(np.abs(det - 1.0) > ROTATION_TOLERANCE):
         raise ValueError(f"{name}: not a rotation matrix (not orthonormal with determinant +1)")
     return R

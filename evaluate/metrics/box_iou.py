@@ -39,6 +39,7 @@ its value times the boxes' area: relative errors ~1e-13, far below cpas_toolbox'
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -197,7 +198,7 @@ class _Workspace(threading.local):
     def get(self, name: str, shape: tuple[int, ...], dtype=np.float64) -> np.ndarray:
         """A contiguous array of ``shape`` in the buffer ``name`` (contents undefined; valid until the
         next ``get`` of that name)."""
-        size = int(np.prod(shape))
+        size = math.prod(shape)
         array = self._arrays.get(name)
         if array is None or array.size < size or array.dtype != dtype:
             array = self._arrays[name] = np.empty(max(size, 2 * (0 if array is None else array.size)), dtype=dtype)
