@@ -20,10 +20,13 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from typing import Iterator
 
 import numpy as np
 import open3d as o3d
+
+from . import icp
 
 #: Below this many points on either side a registration is not attempted (too few to fix 6 DoF robustly).
 MIN_POINTS = 30
@@ -44,7 +47,8 @@ class RegistrationResult:
 class ModelTarget:
     """The registration target: model points (M, 3) in the object frame with normals and colours, built once.
 
-    Holds the Open3D cloud (with a KD-tree inside the ICP calls) and, lazily, kiss-icp's voxel map.
+    Holds the Open3D cloud and, lazily, a scipy KD-tree of the points (point-to-plane ICP, :mod:`.icp`, and
+    smoothing query it: built once per target, where Open3D's ICP built one per call) and kiss-icp's voxel map.
     """
 
     def __init__(self, points: np.ndarray, colors: np.ndarray | None = None, voxel_size: float = 0.003) -> None:
@@ -125,7 +129,7 @@ def _source_cloud(points: np.ndarray, colors: np.ndarray | None) -> o3d.geometry
     return cloud
 
 
-def _icp_open3d(backend: str, source, target: ModelTarget, init: np.ndarray, params: RegistrationParams, voxel: float) -> tuple[np.ndarray, float, float]:
+def _icp_open3d(backend: str, source, target: ModelTarget, init: np.ndarray, params: RegistrationParams) -> tuple[np.ndarray, float, float]:
     """The transform, and the fitness and inlier RMSE at it within ``params.fine_distance`` (Open3D's
     result of the last stage: the same figures as evaluate_registration at that distance)."""
     reg = o3d.pipelines.registration
@@ -205,7 +209,8 @@ def register(
         if backend == "kiss":
             T = _icp_kiss(points, target, init, params)
         else:
-            T, fitness, rmse = _icp_open3d(backend, source, target, init, params, target.voxel_size)
+            icp_run = icp.point_to_plane if backend == "point_to_plane" else partial(_icp_open3d, backend)
+            T, fitness, rmse = icp_run(source, target, init, params)
             if params.quality_distance == params.fine_distance:
                 figures = (fitness, rmse)  # the ICP measured them at the final transform: no second KD-tree
     except RuntimeError as error:  # Open3D raises on degenerate systems (e.g. colored ICP without enough texture)
