@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import open3d as o3d
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
@@ -10,6 +11,21 @@ from scipy.spatial.transform import Rotation
 from annotate.tracking import icp
 from annotate.tracking.registration import ModelTarget, RegistrationParams, _icp_open3d, _source_cloud, open3d_threads
 from evaluate.geometry import invert, transform
+
+
+#: The Open3D release icp.py was matched to bit for bit; another release may order its sums otherwise,
+#: so there the results must agree to rounding, not to the bit.
+BIT_EXACT = o3d.__version__.startswith("0.20.")
+
+
+def _assert_same(got, expected) -> None:
+    """(transform, fitness, rmse) of icp.point_to_plane against Open3D's."""
+    if BIT_EXACT:
+        assert np.array_equal(got[0], expected[0]), np.abs(got[0] - expected[0]).max()
+        assert got[1:] == expected[1:]
+    else:
+        np.testing.assert_allclose(got[0], expected[0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got[1:], expected[1:], rtol=1e-9, atol=1e-12)
 
 
 def _object_points(seed: int = 0) -> np.ndarray:
@@ -58,8 +74,7 @@ def test_point_to_plane_equals_open3d_bit_for_bit(deg, mm, seed):
         for params in (RegistrationParams(), RegistrationParams(iterations=3), RegistrationParams(max_distance=0.02, fine_distance=0.002)):
             expected = _icp_open3d("point_to_plane", source, target, init, params)
             got = icp.point_to_plane(source, target, init, params)
-            assert np.array_equal(got[0], expected[0]), np.abs(got[0] - expected[0]).max()
-            assert got[1:] == expected[1:]
+            _assert_same(got, expected)
             assert got[0].flags.f_contiguous  # Open3D's layout: numpy's later products round the same way
 
 
@@ -76,7 +91,7 @@ def test_point_to_plane_equals_open3d_at_identity_and_without_correspondences():
             source = _source_cloud(points, None)
             expected = _icp_open3d("point_to_plane", source, target, init, RegistrationParams())
             got = icp.point_to_plane(source, target, init, RegistrationParams())
-            assert np.array_equal(got[0], expected[0]) and got[1:] == expected[1:]
+            _assert_same(got, expected)
 
 
 def test_nearest_model_points_follow_moving_points_exactly():
