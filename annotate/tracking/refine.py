@@ -333,11 +333,22 @@ def refinement_confirmed(tracker: Tracker, results: dict[str, FrameResult], chai
     return out
 
 
+def trusted_model(tracker: Tracker, results: dict[str, FrameResult], anchors: list[str] = ()) -> ObjectModel | None:
+    """The model of the frames that are not suspect and fit well (object frame), or None when fewer
+    than a quarter of the frames (at least 3) are such."""
+    config = tracker.config
+    good = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, config) and r.figures.get("fitness", 0.0) >= config.min_fitness}
+    if len(good) < max(3, len(results) // 4):
+        return None
+    return build_model(tracker, good, config.max_global_frames, [a for a in anchors if a in good])
+
+
 def recheck_single_chains(
     tracker: Tracker,
     results: dict[str, FrameResult],
     ends: list[list[str]],
     anchors: list[str] = (),
+    model: ObjectModel | None = None,
 ) -> dict[str, FrameResult]:
     """A second chain through the frames outside the manual frames' span, where only one chain ran.
 
@@ -349,13 +360,14 @@ def recheck_single_chains(
     alone. Where the two land more than the chain-disagreement thresholds apart, the frame's
     ``chain_disagreement_deg`` / ``_m`` say so (and flag it). Measured: a bowl's only chain slid
     8-16 deg off in the two frames before its first manual frame, with fitness still above 0.5.
+    ``model``: :func:`trusted_model` of ``results`` when the caller has it already.
     """
     config = tracker.config
-    good = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, config) and r.figures.get("fitness", 0.0) >= config.min_fitness}
     ends = [e for e in ends if len(e) > 2]
-    if not ends or len(good) < max(3, len(results) // 4):
+    if model is None and ends:
+        model = trusted_model(tracker, results, anchors)
+    if not ends or model is None:
         return results
-    model = build_model(tracker, good, config.max_global_frames, [a for a in anchors if a in good])
     hits = min_hits_for(model, config)
     out = dict(results)
     for end in ends:
