@@ -17,9 +17,12 @@ colours are placed right). The angle that matches the colours best, when it matc
 better than the pose itself, is how far the colour says the spin is off; a frame's verdict is the
 median over its checked neighbours (one frame's colours alone are noisy).
 
-Measured on the v5 sequences (seeds 0 and 1): the mug of seed 1 had 4 frames off by 10-14 deg
-without a flag; the check flags 19 more frames (all 4-14 deg off), none of them within 3 deg, and
-nothing at the true poses (30 frames checked); the mug of seed 0 checks 4 frames and flags none;
+The engine turns such a frame by that spin (``TrackingConfig.colour_spin_correct``) and flags it
+beyond ``max_colour_spin_deg``. Measured on the v5 sequences (seeds 0 and 1): the mug of seed 1 had
+4 frames off by 10-14 deg without a flag; the check flags 19 more frames (all 4-14 deg off before
+the turn), none of them within 3 deg, and prefers no spin at the true poses (30 frames checked);
+turned, the mug's rotation error went from 3.36 / 7.60 to 2.42 / 5.31 deg (median / p90) and no
+frame is off by more than 10 deg; the mug of seed 0 checks 4 frames and changes none;
 a camera or a laptop does not spin freely (the model spun by 10 deg does not fit itself) and is not
 checked. Time: 1-2 ms per frame on a mug, under 0.5 on the others.
 """
