@@ -212,3 +212,14 @@ def test_a_refinement_round_may_not_carry_a_frame_far_without_a_better_fit():
     assert large_step(12.0, 0.001, config)  # a mug spinning on its bottom
     assert not large_step(2.0, 0.005, config)
     assert not large_step(12.0, 0.025, TrackingConfig(max_refine_step_deg=0, max_refine_step_m=0))
+
+
+def test_refinement_rounds_may_not_together_carry_a_symmetric_frame_far_from_its_chains():
+    from annotate.tracking.refine import far_from_chains, large_step
+
+    config = TrackingConfig()
+    # two rounds of 4 deg / 7 mm each pass the per-round check, but not together (a bowl's slide)
+    assert not large_step(4.0, 0.007, config)
+    assert far_from_chains(8.0, 0.005, config) and far_from_chains(3.0, 0.014, config)
+    assert not far_from_chains(4.0, 0.007, config)
+    assert not far_from_chains(8.0, 0.014, TrackingConfig(max_refine_departure_deg=0, max_refine_departure_m=0))
