@@ -11,7 +11,8 @@ Figures (stored as extra keys on each tracked frame of the document):
   pose is from the nearer of the two chains' poses (consistency.chain_departures);
 - ``colour_spin_deg``: objects without symmetry, frames whose geometry leaves the spin about the
   axis free (a mug with its handle hidden): the spin (deg) at which the colours match the model
-  clearly better than at the pose, 0 when none does (colour_spin.py);
+  clearly better than at the tracked pose, 0 when none does; the frame is turned by it
+  (``colour_spin_correct``) and flagged beyond ``max_colour_spin_deg`` (colour_spin.py);
 - ``rotation_jump_deg``: the larger rotation to the previous and the next frame's final pose
   (manual frames at their placed box; consistency.rotation_jumps);
 - for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
@@ -65,7 +66,7 @@ def flag_reasons(figures: dict, config) -> list[str]:
     if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
         reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
     if abs(figures.get("colour_spin_deg", 0.0)) > config.max_colour_spin_deg:
-        reasons.append(f"the colours match a pose turned {figures['colour_spin_deg']:.1f} deg about the axis better")
+        reasons.append(f"turned {figures['colour_spin_deg']:.1f} deg about the axis to match its colours (its shape leaves that spin free)")
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
         reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
