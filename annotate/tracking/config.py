@@ -24,6 +24,9 @@ class TrackingConfig:
     max_refine_step_deg: float = 10.0  #: a joint-refinement round turning a frame further keeps its pose (0: no limit)
     max_refine_step_m: float = 0.02  #: ... and so does one moving it further than this (m; 0: no limit)
     refine_step_fitness_gain: float = 0.05  #: ... unless the turned pose fits the same points by this much better
+    max_refine_departure_deg: float = 5.0  #: symmetric objects: rounds that together turn a frame's axis this far from the chains' pose
+    max_refine_departure_m: float = 0.01  #: ... or move it this far (m) need that better fit too (0: no limit; refine.far_from_chains)
+    max_refine_through_gain: float = 0.05  #: symmetric objects: ... and may not leave this much more of the model seen through (0: off)
     settled_deg: float = 0.2  #: ... fewer once a round moved the poses less than this in the median
     settled_m: float = 0.0005  #: ... and less than this (m)
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)
@@ -46,7 +49,10 @@ class TrackingConfig:
     min_in_box: float = 0.6
     max_chain_disagreement_deg: float = 5.0
     max_chain_disagreement_m: float = 0.01
-    max_chain_departure_deg: float = 10.0  #: final pose this far from both chains' poses (consistency.py)
+    max_chain_departure_deg: float = 8.0  #: final pose this far from both chains' poses (consistency.py)
+    colour_spin_check: bool = True  #: objects without symmetry: check a spin the geometry leaves free against the colours (colour_spin.py)
+    max_colour_spin_deg: float = 7.0  #: ... and flag a frame whose colours match this far spun clearly better
+    colour_spin_correct: bool = True  #: ... and turn such a frame by the spin its colours prefer
     max_frame_rotation_deg: float = 20.0  #: a frame turned this far from a neighbour frame (consistency.py)
     max_manual_correction_deg: float = 6.0
     max_manual_correction_m: float = 0.012

@@ -20,7 +20,10 @@
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the placed boxes' mean tilt is kept;
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
-   chains they came from and for jumps between frames (consistency.py).
+   chains they came from and for jumps between frames (consistency.py), and, for objects without
+   symmetry, a spin about the axis that the geometry leaves free checked against the colours and
+   turned to the spin they prefer (colour_spin.py: a mug with its handle hidden, carried off by
+   both chains alike; done before the common frame, after the joint refinement and the smoothing).
 
 Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures).
 """
@@ -41,7 +44,9 @@ from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
-from .refine import build_model, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, smooth_refined
+from .colour_spin import ColourSpinCheck, spin_matrix
+from .model import ObjectModel
+from .refine import build_model, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, smooth_refined, trusted_model
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
@@ -92,6 +97,20 @@ def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: lis
     if np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0 or np.linalg.norm(point) > 0.25 * np.max(tracker.extents):
         return None
     return snap_upright(np.eye(4), axis, point)
+
+
+def colour_spins(tracker: Tracker, results: dict[str, FrameResult], model: ObjectModel) -> dict[str, tuple[float, np.ndarray]]:
+    """Per frame whose geometry leaves the spin about the object's axis free: the spin (degrees) its colours
+    prefer against ``model`` (of the trusted frames, object frame; colour_spin.py) and the 4x4 object-frame
+    spin S (``pose @ S`` is the pose the colours prefer)."""
+    points, _ = model.points(min_hits_for(model, tracker.config))
+    try:
+        check = ColourSpinCheck(tracker, points)
+    except ValueError:
+        return {}
+    poses = {f: r.pose for f, r in results.items() if r.ok}
+    spins = check.run(poses, {f: r.figures.get("fitness", 0.0) for f, r in results.items() if r.ok})
+    return {f: (deg, spin_matrix(check.axis, check.point, deg)) for f, deg in spins.items()}
 
 
 def track_sequence(
@@ -168,8 +187,15 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         ends.append(ids[a_idx[0] + 1 :: -1])
     if a_idx[-1] < len(ids) - 1 and a_idx[-1] > 0:
         ends.append(ids[a_idx[-1] - 1 :])
-    results = recheck_single_chains(tracker, results, ends, anchors)
+    check_colours = not symmetric and config.colour_spin_check
+    # one model of the trusted frames judges the second chains and the colours
+    trusted = trusted_model(tracker, results, anchors) if ends or check_colours else None
+    results = recheck_single_chains(tracker, results, ends, anchors, trusted)
     # the final pose must stay near one of the chains it came from (both in anchor 0's object frame)
+    # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
+    spins = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else {}
+    if config.colour_spin_correct:
+        results = {f: FrameResult(r.pose @ spins[f][1], r.ok, r.figures) if f in spins and spins[f][0] else r for f, r in results.items()}
     departures = chain_departures({f: r.pose for f, r in results.items()}, chain_poses, symmetric)
 
     # 5: one object frame for all, fitted to the placed boxes
@@ -191,6 +217,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if frame_id in departures:
             figures["chain_departure_deg"], figures["chain_departure_m"] = departures[frame_id]
         figures["rotation_jump_deg"] = float(jumps[frame_id])
+        if frame_id in spins:
+            figures["colour_spin_deg"] = spins[frame_id][0]
         if result.ok:
             points, _ = tracker.crop(frame_id, poses[frame_id])
             figures["in_box"] = in_box_share(points, poses[frame_id], tracker.box)

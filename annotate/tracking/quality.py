@@ -9,6 +9,10 @@ Figures (stored as extra keys on each tracked frame of the document):
   chain on the model of all frames lands from the final pose (refine.recheck_single_chains);
 - ``chain_departure_deg`` / ``chain_departure_m``: between two manual frames, how far the final
   pose is from the nearer of the two chains' poses (consistency.chain_departures);
+- ``colour_spin_deg``: objects without symmetry, frames whose geometry leaves the spin about the
+  axis free (a mug with its handle hidden): the spin (deg) at which the colours match the model
+  clearly better than at the tracked pose, 0 when none does; the frame is turned by it
+  (``colour_spin_correct``) and flagged beyond ``max_colour_spin_deg`` (colour_spin.py);
 - ``rotation_jump_deg``: the larger rotation to the previous and the next frame's final pose
   (manual frames at their placed box; consistency.rotation_jumps);
 - for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
@@ -61,6 +65,8 @@ def flag_reasons(figures: dict, config) -> list[str]:
         reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
     if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
         reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
+    if abs(figures.get("colour_spin_deg", 0.0)) > config.max_colour_spin_deg:
+        reasons.append(f"turned {figures['colour_spin_deg']:.1f} deg about the axis to match its colours (its shape leaves that spin free)")
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
         reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
