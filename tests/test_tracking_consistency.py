@@ -136,3 +136,19 @@ def test_the_model_of_a_badly_tracked_sequence_uses_the_frames_whose_chains_agre
     # scores (the larger of deg / 5 and m / 0.01): 7 -> 0, 3 -> 0.3, 4 -> 0.4, 6 -> 0.8, 1 -> 1.2, 2 -> 3, 5 -> 6
     assert list(picked) == ["3", "4", "6", "7"]  # in frame order
     assert all(np.array_equal(picked[f], results[f].pose) for f in picked)
+
+
+def test_a_link_both_chains_missed_at_the_anchors_is_taken_where_they_meet():
+    # placed boxes 3 deg apart in their own object frames: chains from anchor b live 3 deg off those from a
+    truth = _truth(11)
+    E_b = _block(Rotation.from_euler("x", 3, degrees=True))
+    placed = {"0": truth[0], "10": truth[10] @ E_b}
+    ids = [str(k) for k in range(11)]
+    # the forward chain drifts 1 deg a frame after frame 5 (7 deg at b: too far for a link alone); the
+    # backward chain is lost before frame 4; between them, at frames 4-5, both are on the object
+    forward = {f: FrameResult(truth[k] @ _block(Rotation.from_euler("y", max(0, k - 3), degrees=True)), True, {}) for k, f in enumerate(ids)}
+    backward = {f: FrameResult(truth[k] @ E_b @ (_block(Rotation.from_euler("z", 20, degrees=True)) if k < 4 else np.eye(4)), True, {}) for k, f in enumerate(ids)}
+    offsets = chain_frame_offsets(["0", "10"], placed, [forward], [backward], symmetric=False)
+    true_link = np.linalg.inv(E_b)  # E_b^-1 E_a: brings anchor b's chains into anchor a's object frame
+    # halfway between the placed boxes' identity and the link where the chains meet (frame 4: 1 deg drift)
+    assert pose_difference(offsets[1], true_link)[0] < 2.0 < pose_difference(np.eye(4), true_link)[0]
