@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from bench_tracking import pose_changes  # noqa: E402
+from bench_tracking import pose_changes, surface_samples  # noqa: E402
 
 
 def _record(poses: list[np.ndarray], flagged: list[bool]) -> dict:
@@ -44,3 +44,18 @@ def test_pose_changes_counts_frames_and_measures_the_largest_change():
     spun = [p.copy() for p in poses]
     spun[2][:3, :3] = spun[2][:3, :3] @ Rotation.from_rotvec([0, np.radians(40.0), 0]).as_matrix()
     assert pose_changes(_record(poses, [False] * 5), _record(spun, [False] * 5), symmetric=True)["max_change_deg"] < 1e-9
+
+
+def test_surface_samples_are_dense_enough_for_a_large_flat_object_to_match_itself():
+    """A laptop-sized slab scored against a second sampling of itself: 5000 points (about 7 mm apart)
+    lose points at 5 mm; the density rule (at most half the threshold apart) scores 1."""
+    import trimesh
+
+    from evaluate.metrics.sampling import ShapeIndex, sample_surface
+
+    slab = trimesh.creation.box([0.35, 0.02, 0.25])  # 2070 cm^2
+    n = surface_samples(slab, 0.005)
+    assert n == int(np.ceil(slab.area / 0.0025**2))
+    assert ShapeIndex.from_mesh(slab, n=n, seed=0).fscore(sample_surface(slab, n, seed=1), 0.005).fscore == 1.0
+    assert ShapeIndex.from_mesh(slab, n=5000, seed=0).fscore(sample_surface(slab, 5000, seed=1), 0.005).fscore < 0.95
+    assert surface_samples(trimesh.creation.box([0.02, 0.02, 0.02]), 0.005) == 5000  # the floor for small objects
