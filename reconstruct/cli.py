@@ -28,10 +28,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--voxel-size", type=float, default=0.002, help="voxel size in metres (default 0.002)")
     parser.add_argument("--smoothing", choices=("taubin", "laplacian", "none"), default="taubin", help="mesh smoothing (default taubin: does not shrink)")
     parser.add_argument("--no-masks", action="store_true", help="do not render and write the per-frame masks")
+    parser.add_argument("--include-flagged", action="store_true",
+                        help="also carve with frames flagged for review (by default they are posed and exported but do not carve)")
     return parser
 
 
-def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_size: float, smoothing: str, masks: bool, bar: tqdm | None = None) -> Path:
+def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_size: float, smoothing: str, masks: bool, bar: tqdm | None = None,
+                    include_flagged: bool = False) -> Path:
     """Reconstruct and export one sequence; returns the annotations.json path."""
     from .export import export_redwood
     from .pipeline import reconstruct_sequence
@@ -43,7 +46,7 @@ def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_siz
         if bar is not None:
             bar.set_postfix_str(f"{sequence.name}: {stage} {done}/{total}", refresh=False)
 
-    reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing)
+    reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing, include_flagged=include_flagged)
     progress("export", 0, 1)
     return export_redwood(reconstruction, sequence, annotation, out, masks=masks)
 
@@ -59,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     bar = tqdm(args.sequences, desc="reconstruct", unit="seq", file=sys.stderr, disable=None)
     for root in bar:
         try:
-            reconstruct_one(root, args.annotation, out, args.voxel_size, args.smoothing, not args.no_masks, bar)
+            reconstruct_one(root, args.annotation, out, args.voxel_size, args.smoothing, not args.no_masks, bar, args.include_flagged)
         except InputError as error:
             failed += 1
             tqdm.write(f"error: {error}", file=sys.stderr)

@@ -408,6 +408,30 @@ def test_renderer_casts_only_its_face_clusters_rectangles_for_the_same_depth():
 # --- pipeline on analytic scenes -----------------------------------------------------------------
 
 
+def test_frames_flagged_for_review_are_posed_but_do_not_carve(box_scene):
+    """Six frames whose poses are 12 mm off and flagged (as tracking flags them): by default they are
+    exported with the others but left out of the carving; carving with them cuts into the box."""
+    from sequences.annotation import FramePose
+
+    sequence, annotation = _load(box_scene)
+    bad = sequence.ids[::5]
+    for frame_id in bad:
+        T = annotation.frames[frame_id].matrix.copy()
+        T[:3, 3] += T[:3, :3] @ np.array([0.012, 0.0, 0.0])  # 12 mm along the box's x
+        annotation.frames[frame_id] = FramePose.from_matrix(T, "tracked", {"flagged": True, "flag_reason": "test"})
+    rec = reconstruct_sequence(sequence, annotation)
+    assert set(rec.poses) == set(sequence.ids) and rec.report["flagged_left_out"] == bad
+    assert rec.report["frames_used"] == 30 - len(bad) and rec.report["frames_posed"] == 30
+    np.testing.assert_allclose(rec.extents, [0.06, 0.1, 0.04], atol=0.003)
+    with_flagged = reconstruct_sequence(sequence, annotation, include_flagged=True)
+    assert with_flagged.report["frames_used"] == 30 and not with_flagged.report["flagged_left_out"]
+    assert np.abs(with_flagged.extents - [0.06, 0.1, 0.04]).max() > 0.005  # the bad frames carve into the box
+    # too few unflagged frames to carve with: all are used
+    for frame_id in sequence.ids[:26]:
+        annotation.frames[frame_id] = FramePose.from_matrix(annotation.frames[frame_id].matrix, "tracked", {"flagged": True})
+    assert reconstruct_sequence(sequence, annotation).report["frames_used"] == 30
+
+
 def test_box_scene_is_reconstructed_to_the_millimetre(box_scene):
     sequence, annotation = _load(box_scene)
     calls = []
