@@ -154,7 +154,6 @@ def chain_frame_offsets(
     symmetric: bool,
     max_link_deg: float = 8.0,
     max_link_m: float = 0.015,
-    trust: float | None = None,
 ) -> list[np.ndarray]:
     """Per anchor k, the object-frame change D_k (4x4) that brings poses in anchor k's frame into anchor 0's.
 
@@ -168,10 +167,6 @@ def chain_frame_offsets(
     with one estimate only keeps it within 3/4 of those bounds, two estimates must agree within
     them. A link with no estimate left is taken where the chains meet between the anchors
     (:func:`_meeting_link`), or else is the identity (trust the placed boxes as they are).
-
-    The chains measure D_k with their drift over the stretches between the anchors, the placed boxes
-    say D_k = I with their own error; the two are of one size (1-3 deg), so the D_k returned is the
-    fraction ``trust`` (default :data:`CHAIN_LINK_TRUST`) of the way from I to the chains' D_k.
     """
     offsets = [np.eye(4)]
     for k in range(len(anchors) - 1):
@@ -203,16 +198,7 @@ def chain_frame_offsets(
             link[:3, :3] = Rotation.from_matrix(np.stack(rotations)).mean().as_matrix()
             link[:3, 3] = np.mean([e[:3, 3] for e in estimates], axis=0)
         offsets.append(link @ offsets[-1])
-    trust = CHAIN_LINK_TRUST if trust is None else trust
-    return [interpolate(np.eye(4), D, trust) for D in offsets]
-
-
-#: How far the anchors' object frames follow the chains' links rather than the placed boxes (0: the
-#: placed boxes as they are; 1: the chains'). Measured on v5, all 6 categories x seeds 0, 1 (sums over
-#: the 12 sequences of rot median / p90 deg, centre median mm; goal checks failed of 48, F-score aside):
-#: 1.0: 12.08 / 24.36 / 29.9, 7; 0.7: 11.93 / 23.63 / 23.7, 5; 0.5: 11.59 / 23.08 / 24.9, 5;
-#: 0.3: 12.23 / 24.85 / 25.1, 6; 0.0: 13.25 / 27.08 / 30.0, 8 (one frame > 10 deg unflagged).
-CHAIN_LINK_TRUST = 0.5
+    return offsets
 
 
 #: weight of the link measured where the chains meet against the placed boxes' own (identity) link
