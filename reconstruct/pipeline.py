@@ -49,7 +49,7 @@ class Reconstruction:
 #: Frames flagged for review (tracking's quality flags) are left out of the carving unless fewer than
 #: this many unflagged frames, or this share of the posed ones, would remain. Measured on the v5 laptop,
 #: seed 1 (78 of 100 frames flagged, their poses 10-16 mm off): the posed mesh's median F@5mm over all
-#: its frames rose from 0.04 to 0.45 (bowl seed 1, 14 flagged: 0.89 -> 0.93); unchanged elsewhere.
+#: its frames rose from 0.04 to 0.40 (bowl seed 1, 14 flagged: 0.89 -> 0.93); unchanged elsewhere.
 MIN_CARVE_FRAMES = 10
 MIN_CARVE_SHARE = 0.2
 
@@ -65,7 +65,7 @@ def carving_frames(annotation: Annotation, ids: list[str], include_flagged: bool
 
 
 def select_frames(sequence: Sequence, annotation: Annotation, frames: list[str] | None, source: str) -> list[str]:
-    """Frame ids to carve with: those of ``frames`` (or every frame with a pose) that the sequence holds."""
+    """Frame ids to pose: those of ``frames`` (or every frame with a pose) that the sequence holds (:func:`carving_frames` picks those that carve)."""
     if frames is None:
         chosen = [f for f in sequence.ids if f in annotation.frames]
     else:
@@ -193,6 +193,7 @@ def reconstruct_sequence(
     say("mesh", 1, 1)
 
     solid_voxels = int(meshing.largest_component(occupied).sum())
+    carved = set(ids)
     report = {
         "sequence": annotation.sequence or sequence.name,
         "category": annotation.category,
@@ -200,7 +201,7 @@ def reconstruct_sequence(
         "frames_used": len(ids),
         "frame_ids": ids,
         "frames_posed": len(posed),
-        "flagged_left_out": [f for f in posed if f not in set(ids)],
+        "flagged_left_out": [f for f in posed if f not in carved],
         "voxel_size": voxel_size,
         "grid_shape": list(grid.shape),
         "voxels": grid.size,

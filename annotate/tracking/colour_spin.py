@@ -88,9 +88,9 @@ def spin_matrix(axis: np.ndarray, point: np.ndarray, degrees: float) -> np.ndarr
 def sample_colours(points_cam: np.ndarray, image: np.ndarray, camera, stride: int) -> np.ndarray:
     """Colours (N, 3) in 0..1 of camera-frame points (N, 3) m, read at their pixels of ``image`` (h, w, 3) uint8 subsampled by ``stride``."""
     h, w = image.shape[:2]
-    z = np.maximum(points_cam[:, 2], 1e-6)
-    u = np.clip(np.round((camera.fx * points_cam[:, 0] / z + camera.cx) / stride).astype(np.int64), 0, w - 1)
-    v = np.clip(np.round((camera.fy * points_cam[:, 1] / z + camera.cy) / stride).astype(np.int64), 0, h - 1)
+    uv, _ = camera.project(points_cam)  # crops keep points with z > 0 only
+    u = np.clip(np.round(uv[:, 0] / stride).astype(np.int64), 0, w - 1)
+    v = np.clip(np.round(uv[:, 1] / stride).astype(np.int64), 0, h - 1)
     return image[v, u].astype(np.float64) / 255.0
 
 

@@ -193,11 +193,11 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # one model of the trusted frames judges the second chains and the colours
     trusted = trusted_model(tracker, results, anchors) if ends or check_colours else None
     results = recheck_single_chains(tracker, results, ends, anchors, trusted)
-    # the final pose must stay near one of the chains it came from (both in anchor 0's object frame)
     # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
     spins = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else {}
     if config.colour_spin_correct:
         results = {f: FrameResult(r.pose @ spins[f][1], r.ok, r.figures) if f in spins and spins[f][0] else r for f, r in results.items()}
+    # the final pose must stay near one of the chains it came from (both in anchor 0's object frame)
     departures = chain_departures({f: r.pose for f, r in results.items()}, chain_poses, symmetric)
 
     # 5: one object frame for all, fitted to the placed boxes

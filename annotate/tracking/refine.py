@@ -181,7 +181,7 @@ def _through_pair(tracker: Tracker, frame_id: str, pose_a: np.ndarray, pose_b: n
     them, freespace.py), at ``pose_a`` and at ``pose_b`` (4x4 each)."""
     out = []
     for pose in (pose_a, pose_b):
-        through, seen = free_space_votes(target.points, {frame_id: pose}, tracker.store, tracker.config.free_space_tolerance)
+        through, _ = free_space_votes(target.points, {frame_id: pose}, tracker.store, tracker.config.free_space_tolerance)
         out.append(float(np.mean(through)) if len(through) else 0.0)
     return out[0], out[1]
 
