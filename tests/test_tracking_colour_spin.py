@@ -16,10 +16,11 @@ import numpy as np
 from annotate.tracking.colour_spin import SPIN_GRID_DEG, ColourSpinCheck, preferred_spin, spin_matrix
 from annotate.tracking.config import TrackingConfig
 from evaluate.geometry import rotation_about_y
+from sequences.camera import Camera
 
 RADIUS, HEIGHT, KNOB_RADIUS = 0.04, 0.1, 0.014
 KNOB_CENTRE = np.array([0.0, 0.0, -0.056])
-CAMERA = SimpleNamespace(fx=600.0, fy=600.0, cx=160.0, cy=120.0, width=320, height=240)
+CAMERA = Camera(fx=600.0, fy=600.0, cx=160.0, cy=120.0, width=320, height=240)
 
 
 def _surface(step: float = 0.002) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
