@@ -14,6 +14,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
     parser.add_argument("--track", action="store_true", help="no server: refine the manual frames, track every frame, write the document")
+    parser.add_argument("--placement-sigma", type=float, nargs=2, metavar=("DEG", "MM"), default=None,
+                        help="with --track: how far the placed boxes are off, per axis (default 1 deg 2 mm, boxes placed within "
+                             "about 3 deg and 5 mm; raise it for rougher boxes, so that the tracking chains count for more)")
     return parser
 
 

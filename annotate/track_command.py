@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
+
 from sequences.annotation import annotation_path, load_annotation, save_annotation
 from sequences.errors import InputError
 from sequences.reader import open_sequence
@@ -34,6 +36,11 @@ def run_track(args) -> int:
     if unknown:
         raise InputError(path, f"frame {unknown[0]} is not in the sequence {sequence.root}")
     config = TrackingConfig()
+    sigma = getattr(args, "placement_sigma", None)
+    if sigma is not None:
+        if not all(np.isfinite(sigma)) or min(sigma) <= 0:
+            raise InputError(path, f"--placement-sigma must be two positive numbers (deg, mm), got {sigma[0]:g} {sigma[1]:g}")
+        config.manual_rotation_sigma_deg, config.manual_translation_sigma = sigma[0], sigma[1] / 1000
     bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True)
 
     def progress(done: int, total: int) -> None:

@@ -66,7 +66,15 @@ def test_chains_that_never_meet_are_blended_and_keep_their_disagreement():
     assert all(out[f].figures["chain_disagreement_deg"] > 5.0 for f in ids[6:15])
 
 
+def _link_weight(placement_deg: float, link_deg: float) -> float:
+    """Two anchors, rotation about one axis: the share of a measured link (sigma ``link_deg``) the least-squares
+    estimate takes, against two placed boxes each off by sigma ``placement_deg`` (their difference: twice the variance)."""
+    return 2 * placement_deg**2 / (2 * placement_deg**2 + link_deg**2)
+
+
 def test_a_link_from_one_chain_alone_is_not_trusted():
+    from annotate.tracking.reconcile import SINGLE_LINK_SIGMA
+
     truth = _truth(11)
     placed = {"a": truth[0], "b": truth[10] @ _block(Rotation.from_euler("z", 2, degrees=True))}
     drifted = {"b": FrameResult(truth[10] @ _block(Rotation.from_euler("x", 7, degrees=True)), True, {})}
@@ -74,13 +82,65 @@ def test_a_link_from_one_chain_alone_is_not_trusted():
     offsets = chain_frame_offsets(["a", "b"], placed, [drifted], [lost], symmetric=False)
     assert np.allclose(offsets[1], np.eye(4))  # the 7 deg drift of the forward chain alone is not taken as the link
     small = {"b": FrameResult(placed["b"] @ _block(Rotation.from_euler("x", 3, degrees=True)), True, {})}
-    offsets = chain_frame_offsets(["a", "b"], placed, [small], [lost], symmetric=False)
-    assert abs(pose_difference(np.eye(4), offsets[1])[0] - 3.0) < 1e-4  # a small one is
-    # both chains arriving within a few degrees and agreeing: the link is their mean
-    good_f = {"b": FrameResult(placed["b"] @ _block(Rotation.from_euler("x", 3, degrees=True)), True, {})}
-    good_b = {"a": FrameResult(placed["a"] @ _block(Rotation.from_euler("x", -3, degrees=True)), True, {})}
-    offsets = chain_frame_offsets(["a", "b"], placed, [good_f], [good_b], symmetric=False)
-    assert abs(pose_difference(np.eye(4), offsets[1])[0] - 3.0) < 1e-6
+    # a small one is, as it is when the placed boxes are said to carry no information ...
+    offsets = chain_frame_offsets(["a", "b"], placed, [small], [lost], symmetric=False, placement_sigma=(0.0, 0.0))
+    assert abs(pose_difference(np.eye(4), offsets[1])[0] - 3.0) < 1e-4
+    # ... and weighed against the placed boxes otherwise (1 deg each, against a lone chain's sigma)
+    offsets = chain_frame_offsets(["a", "b"], placed, [small], [lost], symmetric=False, placement_sigma=(1.0, 0.002))
+    expected = 3.0 * _link_weight(1.0, SINGLE_LINK_SIGMA[0])
+    assert 0.5 < expected < 3.0 and abs(pose_difference(np.eye(4), offsets[1])[0] - expected) < 1e-6
+
+
+def test_two_agreeing_chains_set_the_link_by_their_agreement():
+    from annotate.tracking.reconcile import LINK_FLOOR_SIGMA
+
+    truth = _truth(11)
+    placed = {"a": truth[0], "b": truth[10]}
+    x = lambda deg: _block(Rotation.from_euler("x", deg, degrees=True))  # noqa: E731
+    # both chains arrive 3 deg (about x) off the placed box: the same link twice
+    offsets = chain_frame_offsets(["a", "b"], placed, [{"b": FrameResult(placed["b"] @ x(3), True, {})}],
+                                  [{"a": FrameResult(placed["a"] @ x(-3), True, {})}], symmetric=False)
+    # their mean has half the floor's variance
+    expected = 3.0 * _link_weight(1.0, LINK_FLOOR_SIGMA[0] / np.sqrt(2))
+    assert abs(pose_difference(np.eye(4), offsets[1])[0] - expected) < 1e-6
+    # arriving 2 and 6 deg off (4 apart, about one axis): each chain's variance per axis is 4^2 / 6,
+    # their mean's 4^2 / 12 (the gap spread over 3 axes, halved for the mean)
+    offsets = chain_frame_offsets(["a", "b"], placed, [{"b": FrameResult(placed["b"] @ x(2), True, {})}],
+                                  [{"a": FrameResult(placed["a"] @ x(-6), True, {})}], symmetric=False)
+    expected = 4.0 * _link_weight(1.0, 4.0 / np.sqrt(12))
+    assert abs(pose_difference(np.eye(4), offsets[1])[0] - expected) < 1e-6
+
+
+def test_anchor_frames_are_the_least_squares_pose_graph_solution():
+    # four anchors, placed boxes off about x by known angles, both chains exact: every link is measured
+    # with the floor's variance; the solution is checked against a dense weighted least squares over
+    # the angles (a second implementation: rotations about one axis add)
+    from annotate.tracking.reconcile import LINK_FLOOR_SIGMA
+
+    truth = _truth(31)
+    ids = ["0", "10", "20", "30"]
+    off = np.array([1.5, -2.0, 0.5, 2.5])  # deg: E_k = rot_x(off[k])
+    placed = {f: truth[int(f)] @ _block(Rotation.from_euler("x", d, degrees=True)) for f, d in zip(ids, off)}
+    # a chain from anchor k lives in anchor k's object frame: truth @ E_k
+    forwards = [{ids[k + 1]: FrameResult(truth[int(ids[k + 1])] @ _block(Rotation.from_euler("x", off[k], degrees=True)), True, {})} for k in range(3)]
+    backwards = [{ids[k]: FrameResult(truth[int(ids[k])] @ _block(Rotation.from_euler("x", off[k + 1], degrees=True)), True, {})} for k in range(3)]
+    offsets = chain_frame_offsets(ids, placed, forwards, backwards, symmetric=False, placement_sigma=(1.0, 0.002))
+    link_sigma = LINK_FLOOR_SIGMA[0] / np.sqrt(2)
+    rows, rhs = [], []
+    for k in range(4):  # e_k ~ 0, sigma 1 deg
+        rows.append(np.eye(4)[k] / 1.0)
+        rhs.append(0.0)
+    for k in range(3):  # e_k - e_(k+1) ~ off_k - off_(k+1)
+        rows.append((np.eye(4)[k] - np.eye(4)[k + 1]) / link_sigma)
+        rhs.append((off[k] - off[k + 1]) / link_sigma)
+    estimate = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    for k in range(4):
+        # D_k = E_k^-1 E_0: a turn about x by estimate_0 - estimate_k
+        expected = _block(Rotation.from_euler("x", estimate[0] - estimate[k], degrees=True))
+        assert pose_difference(offsets[k], expected)[0] < 1e-5  # arccos resolution
+    # the anchors' frames brought together: the placed boxes differ by up to 4.5 deg, the estimate from the
+    # truth's relative offsets by at most 0.3 (exact links, but a floor on their sigma: some pull to the boxes stays)
+    assert np.max(np.abs((estimate - estimate[0]) - (off - off[0]))) < 0.3
 
 
 def test_final_poses_far_from_both_chains_and_jumps_are_measured():
@@ -148,7 +208,34 @@ def test_a_link_both_chains_missed_at_the_anchors_is_taken_where_they_meet():
     # backward chain is lost before frame 4; between them, at frames 4-5, both are on the object
     forward = {f: FrameResult(truth[k] @ _block(Rotation.from_euler("y", max(0, k - 3), degrees=True)), True, {}) for k, f in enumerate(ids)}
     backward = {f: FrameResult(truth[k] @ E_b @ (_block(Rotation.from_euler("z", 20, degrees=True)) if k < 4 else np.eye(4)), True, {}) for k, f in enumerate(ids)}
-    offsets = chain_frame_offsets(["0", "10"], placed, [forward], [backward], symmetric=False)
     true_link = np.linalg.inv(E_b)  # E_b^-1 E_a: brings anchor b's chains into anchor a's object frame
-    # halfway between the placed boxes' identity and the link where the chains meet (frame 4: 1 deg drift)
-    assert pose_difference(offsets[1], true_link)[0] < 2.0 < pose_difference(np.eye(4), true_link)[0]
+    # the link where the chains meet (frame 4: 1 deg drift), taken as it is without a placement sigma ...
+    offsets = chain_frame_offsets(["0", "10"], placed, [forward], [backward], symmetric=False, placement_sigma=(0.0, 0.0))
+    assert pose_difference(offsets[1], true_link)[0] < 1.01 and pose_difference(np.eye(4), true_link)[0] > 2.99
+    measured = offsets[1]
+    # ... and weighed against the placed boxes with its meeting sigma
+    from annotate.tracking.reconcile import MEETING_LINK_SIGMA
+
+    offsets = chain_frame_offsets(["0", "10"], placed, [forward], [backward], symmetric=False, placement_sigma=(1.0, 0.002))
+    share = _link_weight(1.0, MEETING_LINK_SIGMA[0])
+    expected = Rotation.from_matrix(measured[:3, :3]).as_rotvec() * share
+    assert np.allclose(Rotation.from_matrix(offsets[1][:3, :3]).as_rotvec(), expected, atol=1e-9)
+
+
+def test_a_frame_the_recheck_clears_needs_a_trusted_neighbour():
+    from annotate.tracking.refine import _vouched
+
+    order = [str(k) for k in range(7)]
+    before = {f: FrameResult(np.eye(4), True, {"chain_disagreement_deg": 20.0 if f in "234" else 0.0}) for f in order}
+    todo = {"2", "3", "4"}
+
+    def cleared(frames):
+        return {f: FrameResult(np.eye(4), True, {"chain_disagreement_deg": 0.5}) if f in frames else r for f, r in before.items()}
+
+    # frame 3 alone cleared, between frames 2 and 4 whose disagreement stands: it keeps its own
+    out = _vouched(cleared({"3"}), before, order, todo)
+    assert out["3"] is before["3"]
+    # frames 2 and 3 cleared: 2 sits beside frame 1 (never suspect), and 3 beside 2
+    out = _vouched(cleared({"2", "3"}), before, order, todo)
+    assert out["2"].figures["chain_disagreement_deg"] == 0.5 and out["3"].figures["chain_disagreement_deg"] == 0.5
+    assert out["4"] is before["4"]

@@ -202,6 +202,13 @@ def test_annotate_track_bad_documents_exit_2_with_one_line(tmp_path, scene):
     assert empty.read_text() == "category: mug\n"  # nothing of the user's overwritten
     missing = _annotate(str(tmp_path / "nowhere"), "--track")
     assert missing.returncode == 2 and missing.stderr.startswith("error:")
+    document = tmp_path / "boxes.yaml"
+    save_annotation(Annotation(sequence="mug", category="mug", extents=np.array([0.1, 0.1, 0.1]),
+                               frames={"0000001": FramePose.from_matrix(np.eye(4), "manual")}), document, backup=False)
+    before = document.read_text()
+    run = _annotate(str(root), "--track", "--annotation", str(document), "--placement-sigma", "0", "2")
+    assert run.returncode == 2 and "--placement-sigma" in run.stderr and run.stderr.count("\n") == 1
+    assert document.read_text() == before
 
 
 def test_a_refinement_round_may_not_carry_a_frame_far_without_a_better_fit():

@@ -153,7 +153,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         segment = ids[a : b + 1]
         forwards.append(run_chain(tracker, segment, placed[ids[a]], steps))
         backwards.append(run_chain(tracker, segment[::-1], placed[ids[b]], steps))
-    frames_of = chain_frame_offsets(anchors, placed, forwards, backwards, symmetric)
+    frames_of = chain_frame_offsets(anchors, placed, forwards, backwards, symmetric, (config.manual_rotation_sigma_deg, config.manual_translation_sigma))
     for k, m in enumerate(anchors):
         results[m] = FrameResult(placed[m] @ frames_of[k], True, {})
     for k, (a, b) in enumerate(zip(a_idx, a_idx[1:])):

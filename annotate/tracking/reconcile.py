@@ -152,6 +152,7 @@ def chain_frame_offsets(
     forwards: list[dict[str, FrameResult]],
     backwards: list[dict[str, FrameResult]],
     symmetric: bool,
+    placement_sigma: tuple[float, float] = (1.0, 0.002),
     max_link_deg: float = 8.0,
     max_link_m: float = 0.015,
 ) -> list[np.ndarray]:
@@ -159,16 +160,65 @@ def chain_frame_offsets(
 
     Each placed box has its own small error E_k (placed = true @ E_k), so chains started from
     different anchors live in slightly different object frames and would leave a seam where they
-    meet. The chain from anchor k that reaches anchor k+1 measures X = E_(k+1)^-1 E_k as
-    ``inv(placed[k+1]) @ forward[k+1]``; the backward chain measures its inverse. Their mean
-    (drift of the two chains averages) links consecutive anchors: D_(k+1) = X D_k, D_0 = I.
-    Hand-placed boxes differ by a few degrees and millimetres; a link estimate beyond
-    ``max_link_deg`` / ``max_link_m`` means its chain lost the object and is dropped; a link left
-    with one estimate only keeps it within 3/4 of those bounds, two estimates must agree within
-    them. A link with no estimate left is taken where the chains meet between the anchors
-    (:func:`_meeting_link`), or else is the identity (trust the placed boxes as they are).
+    meet. The chain from anchor k that reaches anchor k+1 measures the link X = E_(k+1)^-1 E_k as
+    ``inv(placed[k+1]) @ forward[k+1]``; the backward chain measures it too, from the other end.
+    Both carry the drift their chain gathered, and the placed boxes are themselves a measurement:
+    each E_k is near the identity, within ``placement_sigma`` (deg, m per axis: the annotator's
+    placement error). The E_k are the weighted least-squares solution of both (a pose graph over
+    the anchors, linearised: the errors are a few degrees), each link weighted by its measured
+    uncertainty (:func:`_anchor_links`), and D_k = E_k^-1 E_0. A sigma of 0 or less means the
+    placements carry no information (the links are taken as they are).
+
+    Measured end to end (bench_tracking, v5 seeds 0-3, all 6 categories, 4 manual frames off by up to
+    3 deg / 5 mm / 8%: the issue's setting, whose per-axis sigma is 1 deg / 2.2 mm), sums over the 24
+    sequences of rot median / p90 deg and centre mm, links taken as they are (the previous code) -> this:
+    22.73 / 49.11 / 59.4 -> 22.67 / 45.82 / 50.4 (with the recheck's vouching, refine._vouched).
+    Why both: against the truth, the anchors' frames alone (before the joint refinement), mean over the
+    anchors of those sequences, were 1.18 deg / 2.58 mm with the links as they are and 1.06 deg / 2.76 mm
+    with the placed boxes as they are: two measurements of the same size.
     """
-    offsets = [np.eye(4)]
+    links = _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg, max_link_m)
+    rotation_sigma, translation_sigma = np.radians(placement_sigma[0]), placement_sigma[1]
+    count = len(anchors)
+    errors = np.zeros((count, 6))  # per anchor: rotation vector (rad), translation (m) of E_k
+    for component, prior in ((slice(0, 3), rotation_sigma), (slice(3, 6), translation_sigma)):
+        # normal equations of: E_k ~ 0 (weight 1 / prior^2) and e_k - e_(k+1) ~ link value (weight 1 / link variance)
+        # no placement sigma: a vanishing pull to the placed boxes, which still fixes the anchors no link reaches
+        H = np.eye(count) / (prior if prior > 0 else 1e3) ** 2
+        g = np.zeros((count, 3))
+        for k, value, variances in links:
+            w = 1.0 / variances[0 if component.start == 0 else 1]
+            H[k, k] += w
+            H[k + 1, k + 1] += w
+            H[k, k + 1] -= w
+            H[k + 1, k] -= w
+            g[k] += w * value[component]
+            g[k + 1] -= w * value[component]
+        errors[:, component] = np.linalg.solve(H, g)
+    E = [_exp(e) for e in errors]
+    return [np.linalg.inv(E_k) @ E[0] for E_k in E]
+
+
+#: the uncertainty (deg, m per axis) of an anchor link measured by one chain alone (the other lost the object):
+#: a placement's own (measured on v5 seeds 0-3: 2 deg / 4 mm gave unflagged frames > 10 deg on mugs and
+#: rot median sums 22.73 -> 25.02, as the drifted chain's link was mostly dropped)
+SINGLE_LINK_SIGMA = (1.0, 0.002)
+#: ... and of one measured where the two chains meet (:func:`_meeting_link`): both drifted on the way there
+MEETING_LINK_SIGMA = (2.0, 0.004)
+#: two chains agreeing closer than this (deg, m per axis) still drifted alike as much
+LINK_FLOOR_SIGMA = (0.5, 0.001)
+
+
+def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg, max_link_m) -> list[tuple[int, np.ndarray, tuple[float, float]]]:
+    """The links measured between consecutive anchors: (k, linearised value of X = E_(k+1)^-1 E_k as
+    rotation vector and translation (6,), variance per axis of its rotation (rad^2) and translation (m^2)).
+
+    A link estimate beyond ``max_link_deg`` / ``max_link_m`` means its chain lost the object and is dropped;
+    a link left with one estimate only keeps it within 3/4 of those bounds; two estimates must agree
+    within them, and their difference gives their variance. A link with no estimate left is taken where
+    the chains meet between the anchors (:func:`_meeting_link`), or is not measured.
+    """
+    links = []
     for k in range(len(anchors) - 1):
         a, b = anchors[k], anchors[k + 1]
         estimates = []
@@ -186,23 +236,36 @@ def chain_frame_offsets(
             estimates = []
         if len(estimates) == 2 and not _small(np.linalg.inv(estimates[0]) @ estimates[1], symmetric, max_link_deg, max_link_m):
             estimates = []  # the two chains tell different stories: neither is trusted
+        sigma = SINGLE_LINK_SIGMA
         if not estimates:
-            estimates = _meeting_link(forwards[k], backwards[k], symmetric, 0.75 * max_link_deg, 0.75 * max_link_m)
+            estimates, sigma = _meeting_link(forwards[k], backwards[k], symmetric, 0.75 * max_link_deg, 0.75 * max_link_m), MEETING_LINK_SIGMA
         if not estimates:
-            link = np.eye(4)
-        else:
-            rotations = [e[:3, :3] for e in estimates]
-            if symmetric:
-                rotations = [closest_about_y(R, np.eye(3)) for R in rotations]
-            link = np.eye(4)
-            link[:3, :3] = Rotation.from_matrix(np.stack(rotations)).mean().as_matrix()
-            link[:3, 3] = np.mean([e[:3, 3] for e in estimates], axis=0)
-        offsets.append(link @ offsets[-1])
-    return offsets
+            continue
+        if symmetric:  # the spin about the axis is free: no link measures it
+            for e in estimates:
+                e[:3, :3] = closest_about_y(e[:3, :3], np.eye(3))
+        values = np.array([_log(e) for e in estimates])
+        variances = (np.radians(sigma[0]) ** 2, sigma[1] ** 2)
+        if len(values) == 2:
+            # the two chains' difference, per axis, is twice one chain's variance; their mean has half of it
+            gap = values[0] - values[1]
+            variances = (max(np.sum(gap[:3] ** 2) / 6, np.radians(LINK_FLOOR_SIGMA[0]) ** 2) / 2,
+                         max(np.sum(gap[3:] ** 2) / 6, LINK_FLOOR_SIGMA[1] ** 2) / 2)
+        links.append((k, values.mean(axis=0), variances))
+    return links
 
 
-#: weight of the link measured where the chains meet against the placed boxes' own (identity) link
-MEETING_WEIGHT = 0.5
+def _log(T: np.ndarray) -> np.ndarray:
+    """A small pose (4x4) as (rotation vector (rad), translation (m))."""
+    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+
+def _exp(v: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`_log`."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(v[:3]).as_matrix()
+    T[:3, 3] = v[3:]
+    return T
 
 
 def _meeting_link(forward: dict[str, FrameResult], backward: dict[str, FrameResult], symmetric: bool, max_deg: float, max_m: float) -> list[np.ndarray]:
@@ -212,11 +275,9 @@ def _meeting_link(forward: dict[str, FrameResult], backward: dict[str, FrameResu
     Between the anchors, both chains on the object differ by X = E_b^-1 E_a (``inv(backward) @ forward``)
     plus the drift each gathered on the way, which stays smaller where they meet than at the far anchor
     a lost or drifted chain never reached. That drift is as large as the hand placements' own differences
-    (1-3 deg), so the link taken is halfway (``MEETING_WEIGHT``) between X and the identity (the placed boxes as
-    they are): two estimates of the same size of error. Measured on v5 sequences, links left out before:
-    mug seed 1, anchors 35 -> 66 (forward chain lost after 3 frames, backward one 19 deg off at 35): the
-    chains met at frame 38, and the link's error went from 1.6 deg / 6.1 mm to 1.5 deg / 2.2 mm; bowl
-    seed 1, 4 -> 35: 2.3 deg / 4.0 mm to 1.8 deg / 1.9 mm.
+    (1-3 deg): the link's weight says so (``MEETING_LINK_SIGMA``). Measured on v5 sequences, links left out
+    before: mug seed 1, anchors 35 -> 66 (forward chain lost after 3 frames, backward one 19 deg off at
+    35): the chains met at frame 38; bowl seed 1, 4 -> 35.
     """
     inner = list(forward)[1:-1]  # at the anchors the chains' links were judged already
     both = [f for f in inner if f in backward and forward[f].ok and backward[f].ok]
@@ -227,7 +288,7 @@ def _meeting_link(forward: dict[str, FrameResult], backward: dict[str, FrameResu
     closest = min(both, key=lambda f: max(sizes[f][0] / max_deg, sizes[f][1] / max_m))
     if not _small(links[closest], symmetric, max_deg, max_m):
         return []
-    return [interpolate(np.eye(4), links[closest], MEETING_WEIGHT)]
+    return [links[closest]]
 
 
 def _small(T: np.ndarray, symmetric: bool, max_deg: float, max_m: float) -> bool:
