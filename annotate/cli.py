@@ -21,7 +21,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.placement_sigma is not None and not args.track:
+        parser.error("--placement-sigma applies to --track only")
     if args.track:
         from .track_command import run_track  # owned by the tracking work (issue 5)
 

@@ -22,6 +22,9 @@ def run_track(args) -> int:
 
     from .tracking import TrackingConfig, track_sequence
 
+    sigma = getattr(args, "placement_sigma", None)
+    if sigma is not None and (not all(np.isfinite(sigma)) or min(sigma) <= 0):
+        raise InputError(None, f"--placement-sigma must be two positive numbers (deg, mm), got {sigma[0]:g} {sigma[1]:g}")
     root = args.sequence
     if root is None:
         from sequences.sample import sample_sequence
@@ -36,10 +39,7 @@ def run_track(args) -> int:
     if unknown:
         raise InputError(path, f"frame {unknown[0]} is not in the sequence {sequence.root}")
     config = TrackingConfig()
-    sigma = getattr(args, "placement_sigma", None)
     if sigma is not None:
-        if not all(np.isfinite(sigma)) or min(sigma) <= 0:
-            raise InputError(path, f"--placement-sigma must be two positive numbers (deg, mm), got {sigma[0]:g} {sigma[1]:g}")
         config.manual_rotation_sigma_deg, config.manual_translation_sigma = sigma[0], sigma[1] / 1000
     bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True)
 

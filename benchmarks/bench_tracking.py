@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_tracking.py [--data DIR] [--categories mug can ...] [--frames 100]
         [--manual 4] [--manual-error 3 0.005 0.08] [--backends point_to_plane kiss ...] [--compare-on mug can] [--reconstruct] [--json OUT]
-        [--poses DIR] [--compare-poses DIR] [--profile N] [--placement-sigma 1 0.002]
+        [--poses DIR] [--compare-poses DIR] [--profile N] [--placement-sigma 1 2]
 
 For each category: a synthetic sequence (sequences.synth, cached in DIR), manual frames = the
 truth perturbed by up to 3 deg / 5 mm with extents off by up to 8% (synth.truth_annotation),
@@ -26,7 +26,7 @@ changed and by how much. The chains amplify rounding: reversing the order of a f
 before ICP alone (the same sums, in another order) moved v5 laptop seed 1's median centre error
 from 24.7 to 10.1 mm and seed 0's p90 rotation error from 7.0 to 2.8 deg, so a change that moves
 poses at all is judged on all categories and seeds, pooled, not on one sequence's figures.
-``--placement-sigma DEG M`` sets the tracker's placement sigma (with 3 manual frames off by up to 5 deg, v5 seeds 0+1: 1.7 deg 2.9 mm brings the figures back to within 3% of the links-only code; the default 1 deg 2 mm is 11% worse in the rot median sum). ``--manual-error 0 0 0`` places the manual frames at the truth, which separates the tracker's own
+``--placement-sigma DEG MM`` sets the tracker's placement sigma (as ``annotate --track`` does) (with 3 manual frames off by up to 5 deg, v5 seeds 0+1: 1.7 deg 2.9 mm brings the figures back to within 3% of the links-only code; the default 1 deg 2 mm is 11% worse in the rot median sum). ``--manual-error 0 0 0`` places the manual frames at the truth, which separates the tracker's own
 errors from the placed boxes' (measured, rot median/p90 deg, centre mm, exact vs issue's anchors: camera
 seed 0 0.34/0.96, 0.93 vs 1.41/2.24, 3.04; camera seed 1 1.05/2.04, 5.96 vs 1.84/2.37, 2.21; bowl seed 1
 1.71/3.76, 2.94 vs 1.53/2.46, 2.45).
@@ -203,7 +203,7 @@ def main() -> int:
     parser.add_argument("--manual-error", type=float, nargs=3, default=list(MANUAL_ERROR), metavar=("DEG", "M", "SHARE"),
                         help="how far the manual frames are off at most: rotation (deg), translation (m), extents (share); "
                              "0 0 0 separates the tracker's own errors from the placed boxes'")
-    parser.add_argument("--placement-sigma", type=float, nargs=2, metavar=("DEG", "M"),
+    parser.add_argument("--placement-sigma", type=float, nargs=2, metavar=("DEG", "MM"),
                         help="the tracker's placement sigma per axis (TrackingConfig.manual_rotation_sigma_deg, manual_translation_sigma; "
                              "default 1 deg, 2 mm: the issue's 3 deg / 5 mm placements)")
     parser.add_argument("--backends", nargs="*", default=[], help=f"also compare these backends ({', '.join(BACKENDS)})")
@@ -214,6 +214,8 @@ def main() -> int:
     parser.add_argument("--compare-poses", help="compare every frame's pose with a run written by --poses to this folder")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="print the N tracking entries with the most cumulative time (cProfile)")
     args = parser.parse_args()
+    if args.placement_sigma is not None and not min(args.placement_sigma) > 0:
+        parser.error("--placement-sigma must be two positive numbers (deg, mm)")
     data = Path(args.data)
     data.mkdir(parents=True, exist_ok=True)
     default = TrackingConfig().backend
@@ -226,7 +228,7 @@ def main() -> int:
         backends = [default] + ([b for b in args.backends if b != default] if category in args.compare_on else [])
         for backend in backends:
             row, tracked, truth = run_one(root, backend, args.manual, args.seed, args.profile, tuple(args.manual_error),
-                                         tuple(args.placement_sigma) if args.placement_sigma else None)
+                                         (args.placement_sigma[0], args.placement_sigma[1] / 1000) if args.placement_sigma else None)
             if args.poses or args.compare_poses:
                 record = pose_record(tracked, open_sequence(root).ids)
                 name = f"{category}-s{args.seed}-{backend}.json"

@@ -225,17 +225,20 @@ def test_a_link_both_chains_missed_at_the_anchors_is_taken_where_they_meet():
 def test_a_frame_the_recheck_clears_needs_a_trusted_neighbour():
     from annotate.tracking.refine import _vouched
 
-    order = [str(k) for k in range(7)]
-    before = {f: FrameResult(np.eye(4), True, {"chain_disagreement_deg": 20.0 if f in "234" else 0.0}) for f in order}
-    todo = {"2", "3", "4"}
+    order = [str(k) for k in range(8)]
+    before = {f: FrameResult(np.eye(4), True, {"chain_disagreement_deg": 20.0 if f in "2345" else 0.0}) for f in order}
+    never_suspect = {"0", "1", "6", "7"}
 
     def cleared(frames):
         return {f: FrameResult(np.eye(4), True, {"chain_disagreement_deg": 0.5}) if f in frames else r for f, r in before.items()}
 
+    def kept(out):
+        return {f for f in order if out[f] is not before[f]}
+
     # frame 3 alone cleared, between frames 2 and 4 whose disagreement stands: it keeps its own
-    out = _vouched(cleared({"3"}), before, order, todo)
-    assert out["3"] is before["3"]
-    # frames 2 and 3 cleared: 2 sits beside frame 1 (never suspect), and 3 beside 2
-    out = _vouched(cleared({"2", "3"}), before, order, todo)
-    assert out["2"].figures["chain_disagreement_deg"] == 0.5 and out["3"].figures["chain_disagreement_deg"] == 0.5
-    assert out["4"] is before["4"]
+    assert kept(_vouched(cleared({"3"}), before, order, never_suspect)) == set()
+    # runs joined to a frame never suspect, from the left (1 -> 2 -> 3) and from the right (6 -> 5 -> 4)
+    assert kept(_vouched(cleared({"2", "3"}), before, order, never_suspect)) == {"2", "3"}
+    assert kept(_vouched(cleared({"3", "4", "5"}), before, order, never_suspect)) == {"3", "4", "5"}
+    # a failed neighbour vouches for nothing: with frame 6 failed, 5 and 4 stand alone
+    assert kept(_vouched(cleared({"4", "5"}), before, order, never_suspect - {"6"})) == set()

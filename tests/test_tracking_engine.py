@@ -206,8 +206,10 @@ def test_annotate_track_bad_documents_exit_2_with_one_line(tmp_path, scene):
     save_annotation(Annotation(sequence="mug", category="mug", extents=np.array([0.1, 0.1, 0.1]),
                                frames={"0000001": FramePose.from_matrix(np.eye(4), "manual")}), document, backup=False)
     before = document.read_text()
-    run = _annotate(str(root), "--track", "--annotation", str(document), "--placement-sigma", "0", "2")
-    assert run.returncode == 2 and "--placement-sigma" in run.stderr and run.stderr.count("\n") == 1
+    for bad in (("0", "2"), ("1", "-2"), ("nan", "2")):
+        run = _annotate(str(root), "--track", "--annotation", str(document), "--placement-sigma", *bad)
+        assert run.returncode == 2 and "--placement-sigma" in run.stderr and run.stderr.count("\n") == 1
+        assert str(document) not in run.stderr  # the document is not to blame
     assert document.read_text() == before
 
 

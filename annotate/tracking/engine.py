@@ -182,7 +182,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
     if config.smoothing:
-        results = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 else None, chained)
+        results = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 and config.manual_translation_sigma > 0 else None, chained)
     # before the first and after the last manual frame only one chain ran: a second one, on the whole model
     ends = []
     if a_idx[0] > 0 and a_idx[0] + 1 < len(ids):

@@ -231,7 +231,8 @@ def recheck_disagreements(
     rival; one that lands on a clearly worse fit is a local minimum the final pose beats. With no
     rival beyond the disagreement thresholds, the figures become the rivals' largest difference
     from the final pose (the original kept as ``chain_disagreement_before_deg`` / ``_m``);
-    otherwise the frame keeps the chains' figures (and its flag). A frame whose final pose jumps
+    otherwise the frame keeps the chains' figures (and its flag), also when no run of cleared frames
+    joins it to a frame that was never suspect (:func:`_vouched`). A frame whose final pose jumps
     away from the midpoint of its neighbours' keeps them too (measured: a bowl frame slid 40 mm
     along the model where the hand hid most of it, and no restart found a better fit).
     """
@@ -270,24 +271,25 @@ def recheck_disagreements(
             figures["chain_disagreement_before_m"] = figures.get("chain_disagreement_m", 0.0)
             figures["chain_disagreement_deg"], figures["chain_disagreement_m"] = worst_deg, worst_m
             out[frame_id] = FrameResult(final.pose, True, figures)
-    return _vouched(out, results, order, set(todo))
+    never_suspect = {f for f, r in results.items() if r.ok and not suspect(r, config)}
+    return _vouched(out, results, order, never_suspect)
 
 
-def _vouched(rechecked: dict[str, FrameResult], before: dict[str, FrameResult], order: list[str], todo: set[str]) -> dict[str, FrameResult]:
+def _vouched(rechecked: dict[str, FrameResult], before: dict[str, FrameResult], order: list[str], never_suspect: set[str]) -> dict[str, FrameResult]:
     """The recheck's clearances that neighbours vouch for: a cleared frame keeps its new figures only when
-    a run of cleared frames joins it to a frame that was never suspect. Its smoothness with neighbours
-    that stay suspect says nothing (measured: v5 mug seed 3, frame 22, 19 deg off like its flagged
-    neighbours 21 and 23, every restart landing on the same wrong minimum of the model)."""
-    cleared = {f for f in todo if rechecked[f] is not before[f]}
+    a run of cleared frames joins it to a frame in ``never_suspect`` (registered, chains agreeing). Its
+    smoothness with neighbours that stay suspect, or failed, says nothing (measured: v5 mug seed 3,
+    frame 22, 19 deg off like its flagged neighbours 21 and 23, every restart landing on the same
+    wrong minimum of the model)."""
+    cleared = {f for f in rechecked if rechecked[f] is not before[f]}
     kept: set[str] = set()
-    trusted = lambda i: 0 <= i < len(order) and (order[i] not in todo or order[i] in kept)  # noqa: E731
-    changed = True
-    while changed:
-        changed = False
-        for i, frame_id in enumerate(order):
-            if frame_id in cleared and frame_id not in kept and (trusted(i - 1) or trusted(i + 1)):
+    # two sweeps reach every run of cleared frames from either end
+    for sweep in (order, order[::-1]):
+        trusted = never_suspect | kept
+        for previous, frame_id in zip([None] + sweep[:-1], sweep):
+            if frame_id in cleared and frame_id not in kept and previous in trusted:
                 kept.add(frame_id)
-                changed = True
+                trusted.add(frame_id)
     return {f: before[f] if f in cleared and f not in kept else r for f, r in rechecked.items()}
 
 
