@@ -242,3 +242,20 @@ def test_a_frame_the_recheck_clears_needs_a_trusted_neighbour():
     assert kept(_vouched(cleared({"3", "4", "5"}), before, order, never_suspect)) == {"3", "4", "5"}
     # a failed neighbour vouches for nothing: with frame 6 failed, 5 and 4 stand alone
     assert kept(_vouched(cleared({"4", "5"}), before, order, never_suspect - {"6"})) == set()
+
+
+def test_a_symmetric_objects_links_arrive_spun_about_its_axis():
+    # a can: the chains may arrive turned by any angle about the axis (y); anchor a's box is 3 mm off along x,
+    # b's is exact. The forward chain arrives at b spun by 90 deg, the backward one at a by -30 deg: each sees
+    # a's offset turned by its spin (0, 0, -3 mm and 2.6, 0, 1.5 mm), not as it is
+    truth = _truth(11)
+    E_a = np.eye(4)
+    E_a[:3, 3] = [0.003, 0.0, 0.0]
+    placed = {"a": truth[0] @ E_a, "b": truth[10]}
+    spin = lambda deg: _block(Rotation.from_euler("y", deg, degrees=True))  # noqa: E731
+    forward = {"b": FrameResult(truth[10] @ spin(90) @ E_a, True, {})}  # chain from a: a's object frame, spun
+    backward = {"a": FrameResult(truth[0] @ spin(-30), True, {})}  # chain from b: b's object frame, spun
+    offsets = chain_frame_offsets(["a", "b"], placed, [forward], [backward], symmetric=True, placement_sigma=(0.0, 0.0))
+    # D_b = E_b^-1 E_a: the chains from b brought into a's frame, 3 mm along x (the spin about y is free)
+    assert np.linalg.norm(offsets[1][:3, 3] - E_a[:3, 3]) < 1e-6
+    assert pose_difference(offsets[1], E_a, symmetric=True)[0] < 1e-4

@@ -180,23 +180,22 @@ def chain_frame_offsets(
     with the placed boxes as they are: two measurements of the same size.
     """
     links = _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg, max_link_m)
-    rotation_sigma, translation_sigma = np.radians(placement_sigma[0]), placement_sigma[1]
     count = len(anchors)
-    errors = np.zeros((count, 6))  # per anchor: rotation vector (rad), translation (m) of E_k
-    for component, prior in ((slice(0, 3), rotation_sigma), (slice(3, 6), translation_sigma)):
-        # normal equations of: E_k ~ 0 (weight 1 / prior^2) and e_k - e_(k+1) ~ link value (weight 1 / link variance)
-        # no placement sigma: a vanishing pull to the placed boxes, which still fixes the anchors no link reaches
-        H = np.eye(count) / (prior if prior > 0 else 1e3) ** 2
-        g = np.zeros((count, 3))
-        for k, value, variances in links:
-            w = 1.0 / variances[0 if component.start == 0 else 1]
-            H[k, k] += w
-            H[k + 1, k + 1] += w
-            H[k, k + 1] -= w
-            H[k + 1, k] -= w
-            g[k] += w * value[component]
-            g[k + 1] -= w * value[component]
-        errors[:, component] = np.linalg.solve(H, g)
+    # no placement sigma: a vanishing pull to the placed boxes, which still fixes the anchors no link reaches
+    prior = [np.radians(placement_sigma[0]), placement_sigma[1]]
+    prior = np.repeat([p if p > 0 else 1e3 for p in prior], 3)
+    # normal equations over e = (e_0, ..., e_(K-1)), each (rotation vector (rad), translation (m)) of E_k:
+    # e_k ~ 0 with the placement sigma, and each link estimate v ~ A e_k - e_(k+1) with its own variance
+    H = np.diag(np.tile(1.0 / prior**2, count))
+    g = np.zeros(6 * count)
+    for k, value, variances, spin in links:
+        J = np.zeros((6, 6 * count))
+        J[:3, 6 * k : 6 * k + 3] = J[3:, 6 * k + 3 : 6 * k + 6] = spin
+        J[:, 6 * k + 6 : 6 * k + 12] = -np.eye(6)
+        w = np.repeat(1.0 / np.asarray(variances), 3)
+        H += J.T @ (w[:, None] * J)
+        g += J.T @ (w * value)
+    errors = np.linalg.solve(H, g).reshape(count, 6)
     E = [_exp(e) for e in errors]
     return [np.linalg.inv(E_k) @ E[0] for E_k in E]
 
@@ -211,9 +210,11 @@ MEETING_LINK_SIGMA = (2.0, 0.004)
 LINK_FLOOR_SIGMA = (0.5, 0.001)
 
 
-def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg, max_link_m) -> list[tuple[int, np.ndarray, tuple[float, float]]]:
-    """The links measured between consecutive anchors: (k, linearised value of X = E_(k+1)^-1 E_k as
-    rotation vector and translation (6,), variance per axis of its rotation (rad^2) and translation (m^2)).
+def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg, max_link_m) -> list[tuple[int, np.ndarray, tuple[float, float], np.ndarray]]:
+    """The link estimates between consecutive anchors, one per chain: (k, linearised value of
+    X = E_(k+1)^-1 E_k as rotation vector and translation (6,), variance per axis of its rotation (rad^2)
+    and translation (m^2), and the spin S (3x3) under which it sees anchor k: value ~ S e_k - e_(k+1),
+    S the identity but for symmetric objects).
 
     A link estimate beyond ``max_link_deg`` / ``max_link_m`` means its chain lost the object and is dropped;
     a link left with one estimate only keeps it within 3/4 of those bounds; two estimates must agree
@@ -243,17 +244,25 @@ def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg,
             estimates, sigma = _meeting_link(forwards[k], backwards[k], symmetric, 0.75 * max_link_deg, 0.75 * max_link_m), MEETING_LINK_SIGMA
         if not estimates:
             continue
-        if symmetric:  # the spin about the axis is free: the links are taken without it (their y component 0)
-            for e in estimates:
-                e[:3, :3] = closest_about_y(e[:3, :3], np.eye(3))
-        values = np.array([_log(e) for e in estimates])
+        spins = [np.eye(3)] * len(estimates)
+        if symmetric:
+            # the spin about the axis is free: a chain may arrive spun by phi about it, X = E_(k+1)^-1 S E_k
+            # (S = Ry(phi), measured 10-99 deg on v5 bottles, bowls and cans). Taken out on the right,
+            # X Ry(-phi) = E_(k+1)^-1 (S E_k S^-1): anchor k's error is seen turned by S, tilt and offset alike
+            spun = [closest_about_y(e[:3, :3], np.eye(3)) for e in estimates]
+            spins = [e[:3, :3].T @ R for e, R in zip(estimates, spun)]  # Ry(theta), theta ~ -phi
+            spins = [R.T for R in spins]  # S
+            for e, R in zip(estimates, spun):
+                e[:3, :3] = R
+        values = [_log(e) for e in estimates]
         variances = (np.radians(sigma[0]) ** 2, sigma[1] ** 2)
         if len(values) == 2:
-            # the two chains' difference, per axis, is twice one chain's variance; their mean has half of it
+            # the two chains' difference, per axis, is twice one chain's variance (for symmetric objects it also
+            # holds the anchor's error turned by both spins: an overestimate, on the safe side)
             gap = values[0] - values[1]
-            variances = (max(np.sum(gap[:3] ** 2) / 6, np.radians(LINK_FLOOR_SIGMA[0]) ** 2) / 2,
-                         max(np.sum(gap[3:] ** 2) / 6, LINK_FLOOR_SIGMA[1] ** 2) / 2)
-        links.append((k, values.mean(axis=0), variances))
+            variances = (max(np.sum(gap[:3] ** 2) / 6, np.radians(LINK_FLOOR_SIGMA[0]) ** 2),
+                         max(np.sum(gap[3:] ** 2) / 6, LINK_FLOOR_SIGMA[1] ** 2))
+        links.extend((k, v, variances, S) for v, S in zip(values, spins))
     return links
 
 
