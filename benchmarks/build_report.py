@@ -36,6 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from annotate.tracking.config import TrackingConfig  # noqa: E402
 from annotate.tracking.engine import track_sequence  # noqa: E402
 from evaluate.geometry import shapenet_to_raw_pose  # noqa: E402
 from reconstruct.export import export_redwood  # noqa: E402
@@ -156,7 +157,10 @@ def build_sequence(category: str, seed: int, args, work: Path) -> dict:
         truth, manual, rotation_deg=args.manual_deg, translation_m=args.manual_m, extents_rel=args.manual_extents, seed=seed
     )
     start = time.perf_counter()
-    tracked = track_sequence(sequence, annotation)
+    # the tracker weighs the placed boxes by how far they are off per axis: an angle uniform in [0, max]
+    # about a random axis (and a distance uniform in [0, max]) has a per-axis sigma of max / 3
+    config = TrackingConfig(manual_rotation_sigma_deg=args.manual_deg / 3, manual_translation_sigma=args.manual_m / 3)
+    tracked = track_sequence(sequence, annotation, config=config)
     timings["track_s"] = time.perf_counter() - start
     save_annotation(tracked, root / "annotation.yaml")
 

@@ -259,3 +259,39 @@ def test_a_symmetric_objects_links_arrive_spun_about_its_axis():
     # D_b = E_b^-1 E_a: the chains from b brought into a's frame, 3 mm along x (the spin about y is free)
     assert np.linalg.norm(offsets[1][:3, 3] - E_a[:3, 3]) < 1e-6
     assert pose_difference(offsets[1], E_a, symmetric=True)[0] < 1e-4
+
+
+def test_a_second_chain_that_fits_clearly_worse_does_not_flag_the_end_frames():
+    from types import SimpleNamespace
+
+    from annotate.tracking import TrackingConfig
+    from annotate.tracking.refine import recheck_single_chains
+
+    truth = _truth(8)
+    ids = [str(k) for k in range(8)]
+
+    class Tracker:
+        """Registration stand-in: a start within 5 deg of the truth lands on it (fitness 0.9); one further off
+        stays where it is, at fitness ``lost`` (a worse minimum, or with ``lost`` 0.9 a rival as good)."""
+
+        def __init__(self, lost):
+            self.config, self.symmetric, self.lost = TrackingConfig(), False, lost
+
+        def register(self, frame_id, init, model, hits):
+            T = truth[int(frame_id)]
+            if pose_difference(init, T)[0] < 5.0:
+                return FrameResult(T, True, {"fitness": 0.9})
+            return FrameResult(init, True, {"fitness": self.lost})
+
+    results = {f: FrameResult(T, True, {"fitness": 0.9}) for f, T in zip(ids, truth)}
+    # the second chain runs outward from the manual frame 2 (after its inner neighbour 3); frame 2's pose is
+    # 30 deg off, so the constant-velocity starts of frames 1 and 0 are far off too
+    results["2"] = FrameResult(truth[2] @ _block(Rotation.from_euler("x", 30, degrees=True)), True, {"fitness": 0.9})
+    model = SimpleNamespace(frames=10)
+    worse = recheck_single_chains(Tracker(lost=0.6), results, [["3", "2", "1", "0"]], model=model)
+    rival = recheck_single_chains(Tracker(lost=0.9), results, [["3", "2", "1", "0"]], model=model)
+    for f in ("1", "0"):
+        # a clearly worse fit: no rival, the disagreement is the final pose's own re-registration (0)
+        assert worse[f].figures["chain_disagreement_deg"] < 1e-4 and worse[f].figures["second_chain_fitness"] == 0.6
+        # a fit as good: the disagreement stands
+        assert rival[f].figures["chain_disagreement_deg"] > 20.0 and "second_chain_fitness" not in rival[f].figures
