@@ -418,7 +418,7 @@ def recheck_single_chains(
     are then the final pose's own re-registration (``second_chain_fitness`` kept) and the chain goes
     on from there. Measured on the report's mug (3 boxes off by up to 5 deg, frames 1-15 before the
     first): a second chain 50-80 deg off flagged all 15, which then left a hand remnant in the carving
-    (the mesh 1.8 cm too tall); with the test 8 of them are flagged and the mesh is 5 mm too tall.
+    (the mesh 1.8 cm too tall); with the test 10 of them are flagged and the mesh is 5 mm too tall.
     ``model``: :func:`trusted_model` of ``results`` when the caller has it already.
     """
     config = tracker.config
