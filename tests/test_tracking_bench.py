@@ -59,3 +59,20 @@ def test_surface_samples_are_dense_enough_for_a_large_flat_object_to_match_itsel
     assert ShapeIndex.from_mesh(slab, n=n, seed=0).fscore(sample_surface(slab, n, seed=1), 0.005).fscore == 1.0
     assert ShapeIndex.from_mesh(slab, n=5000, seed=0).fscore(sample_surface(slab, 5000, seed=1), 0.005).fscore < 0.95
     assert surface_samples(trimesh.creation.box([0.02, 0.02, 0.02]), 0.005) == 5000  # the floor for small objects
+
+
+def test_goal_failures_and_the_pooled_summary_count_the_checks():
+    from bench_tracking import goal_failures, pooled_summary
+
+    good = {"category": "mug", "seed": 0, "rot_median_deg": 1.2, "rot_p90_deg": 2.9, "centre_median_mm": 2.0, "flagged": 3,
+            "unflagged_over_10deg": 0}
+    assert goal_failures(good) == []
+    assert goal_failures(dict(good, fscore_5mm_median=0.9)) == []
+    bad = dict(good, seed=1, rot_median_deg=1.6, rot_p90_deg=4.0, unflagged_over_10deg=2, fscore_5mm_median=0.5)
+    assert [f.split()[0] for f in goal_failures(bad)] == ["rot_median_deg", "rot_p90_deg", "unflagged_over_10deg", "fscore_5mm_median"]
+    assert goal_failures(dict(good, rot_p90_deg=3.0, centre_median_mm=3.0)) == []  # the limits themselves pass
+    summary = pooled_summary([good, bad, dict(good, category="can", seed=0)])
+    mug = next(line for line in summary.splitlines() if line.startswith("mug"))
+    # 2 sequences, mean median 1.40, mean p90 3.45, worst 4.00, centre 2.00, 6 flagged, 2 unflagged, 4 checks failing
+    assert mug.split() == ["mug", "2", "1.40", "3.45", "4.00", "2.00", "6", "2", "4"]
+    assert summary.splitlines()[-1].endswith("goal checks failing 4")
