@@ -174,7 +174,8 @@ def chain_frame_offsets(
     3 deg / 5 mm / 8%: the issue's setting, whose per-axis sigma is 1 deg / 2.2 mm), sums over the 24
     sequences of rot median / p90 deg and centre mm, the previous code (links taken as they are, a meeting link
     halfway to the identity) -> this:
-    22.73 / 49.11 / 59.4 -> 22.67 / 45.82 / 50.4 (with the recheck's vouching, refine._vouched).
+    22.73 / 49.11 / 59.4 -> 22.67 / 45.82 / 50.4 (with the recheck's vouching, refine._vouched), and
+    22.01 / 45.35 / 50.3 once symmetric objects' links carry their chains' spin (below).
     Why both: against the truth, the anchors' frames alone (before the joint refinement), mean over the
     anchors of those sequences, were 1.18 deg / 2.58 mm with the links as they are and 1.06 deg / 2.76 mm
     with the placed boxes as they are: two measurements of the same size.
@@ -196,7 +197,7 @@ def chain_frame_offsets(
         H += J.T @ (w[:, None] * J)
         g += J.T @ (w * value)
     errors = np.linalg.solve(H, g).reshape(count, 6)
-    E = [_exp(e) for e in errors]
+    E = [pose_exp(e) for e in errors]
     return [np.linalg.inv(E_k) @ E[0] for E_k in E]
 
 
@@ -249,12 +250,11 @@ def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg,
             # the spin about the axis is free: a chain may arrive spun by phi about it, X = E_(k+1)^-1 S E_k
             # (S = Ry(phi), measured 10-99 deg on v5 bottles, bowls and cans). Taken out on the right,
             # X Ry(-phi) = E_(k+1)^-1 (S E_k S^-1): anchor k's error is seen turned by S, tilt and offset alike
-            spun = [closest_about_y(e[:3, :3], np.eye(3)) for e in estimates]
-            spins = [e[:3, :3].T @ R for e, R in zip(estimates, spun)]  # Ry(theta), theta ~ -phi
-            spins = [R.T for R in spins]  # S
+            spun = [closest_about_y(e[:3, :3], np.eye(3)) for e in estimates]  # e Ry(theta), theta ~ -phi
+            spins = [R.T @ e[:3, :3] for e, R in zip(estimates, spun)]  # Ry(-theta) = S
             for e, R in zip(estimates, spun):
                 e[:3, :3] = R
-        values = [_log(e) for e in estimates]
+        values = [pose_log(e) for e in estimates]
         variances = (np.radians(sigma[0]) ** 2, sigma[1] ** 2)
         if len(values) == 2:
             # the two chains' difference, per axis, is twice one chain's variance (for symmetric objects it also
@@ -266,13 +266,13 @@ def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg,
     return links
 
 
-def _log(T: np.ndarray) -> np.ndarray:
+def pose_log(T: np.ndarray) -> np.ndarray:
     """A small pose (4x4) as (rotation vector (rad), translation (m))."""
     return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
 
 
-def _exp(v: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`_log`."""
+def pose_exp(v: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`pose_log`."""
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(v[:3]).as_matrix()
     T[:3, 3] = v[3:]

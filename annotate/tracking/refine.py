@@ -12,7 +12,6 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from evaluate.geometry import invert
 
@@ -21,7 +20,7 @@ from .smooth import registration_information, smooth_poses
 from .model import ObjectModel
 from .propagate import predict
 from .quality import pose_difference
-from .reconcile import common_correction, interpolate
+from .reconcile import common_correction, interpolate, pose_log
 from .symmetry import closest_about_y
 from .tracker import FrameResult, Tracker
 
@@ -240,10 +239,9 @@ def recheck_disagreements(
     todo = [f for f, r in results.items() if f in chain_poses and r.ok and suspect(r, config)]
     if not todo:
         return results
-    good = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, config) and r.figures.get("fitness", 0.0) >= config.min_fitness}
-    if len(good) < max(3, len(results) // 4):
+    model = trusted_model(tracker, results, anchors)
+    if model is None:
         return results  # too few trusted frames for a model to judge by
-    model = build_model(tracker, good, config.max_global_frames, [a for a in anchors if a in good])
     hits = min_hits_for(model, config)
     out = dict(results)
     order = list(results)
@@ -353,7 +351,7 @@ def smooth_refined(
             D = invert(T) @ P @ correction  # T exp(d) = placed, in the tracked object frame
             if tracker.symmetric:
                 D[:3, :3] = closest_about_y(D[:3, :3], np.eye(3))
-            target = np.concatenate([Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]])
+            target = pose_log(D)
             priors[order.index(m)] = (target, info)
     poses = smooth_poses(
         [results[f].pose for f in order],
