@@ -17,6 +17,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--placement-sigma", type=float, nargs=2, metavar=("DEG", "MM"), default=None,
                         help="with --track: how far the placed boxes are off, per axis (default 1 deg 2 mm, boxes placed within "
                              "about 3 deg and 5 mm; raise it for rougher boxes, so that the tracking chains count for more)")
+    parser.add_argument("--no-facing", dest="facing", action="store_false",
+                        help="with --track: let a frame's points pair with model surfaces facing away from its camera too (by "
+                             "default they do not: the two sides of a thin slab, such as a laptop's base, are told apart)")
     return parser
 
 
@@ -25,6 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.placement_sigma is not None and not args.track:
         parser.error("--placement-sigma applies to --track only")
+    if not args.facing and not args.track:
+        parser.error("--no-facing applies to --track only")
     if args.track:
         from .track_command import run_track  # owned by the tracking work (issue 5)
 

@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotate.tracking.consistency import chain_departures, rotation_jumps
+from annotate.tracking.config import TrackingConfig
+from annotate.tracking.consistency import chain_departures, free_spin_runs, rotation_jumps
+from annotate.tracking.quality import flag_reasons
 from annotate.tracking.quality import pose_difference
 from annotate.tracking.reconcile import blend_chains, chain_frame_offsets
 from annotate.tracking.tracker import FrameResult
@@ -295,3 +297,21 @@ def test_a_second_chain_that_fits_clearly_worse_does_not_flag_the_end_frames():
         assert worse[f].figures["chain_disagreement_deg"] < 1e-4 and worse[f].figures["second_chain_fitness"] == 0.6
         # a fit as good: the disagreement stands
         assert rival[f].figures["chain_disagreement_deg"] > 20.0 and "second_chain_fitness" not in rival[f].figures
+
+
+def test_runs_of_free_spin_frames_are_measured_and_long_or_one_sided_ones_flagged():
+    ids = [f"{k:07d}" for k in range(20)]
+    # free: 0-2 (before the first fixing frame), 5-6 (short, inside), 8-15 with the manual frame 11
+    # splitting it into 8-10 and 12-15, 17-19 (after the last fixing frame)
+    free = {ids[k] for k in [0, 1, 2, 5, 6, 8, 9, 10, 11, 12, 13, 14, 15, 17, 18, 19]}
+    runs = free_spin_runs(ids, free, {ids[11]})
+    assert set(runs) == free - {ids[11]}
+    assert [runs[ids[k]] for k in (0, 2, 5, 6, 8, 10, 12, 15, 17, 19)] == [
+        (3, True), (3, True), (2, False), (2, False), (3, False), (3, False), (4, False), (4, False), (3, True), (3, True)]
+    assert free_spin_runs(ids, set(ids), set()) == {f: (20, True) for f in ids}
+    assert free_spin_runs(ids, set(), {ids[3]}) == {}
+    config = TrackingConfig(max_free_spin_run=3)
+    assert flag_reasons({"free_spin_run": 3, "free_spin_end": False}, config) == []
+    assert flag_reasons({"free_spin_run": 4, "free_spin_end": False}, config) == ["its shape leaves the spin about the axis free for 4 frames in a row"]
+    assert len(flag_reasons({"free_spin_run": 1, "free_spin_end": True}, config)) == 1
+    assert flag_reasons({"free_spin_run": 9, "free_spin_end": True}, TrackingConfig(max_free_spin_run=0)) == []

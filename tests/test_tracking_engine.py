@@ -213,6 +213,29 @@ def test_annotate_track_bad_documents_exit_2_with_one_line(tmp_path, scene):
     assert document.read_text() == before
 
 
+@pytest.mark.slow
+def test_the_facing_test_is_left_out_for_a_nearly_round_object_without_symmetry(scene, tracked):
+    from dataclasses import replace
+
+    from annotate.tracking.engine import _nearly_round
+    from annotate.tracking.frames import FrameStore
+    from annotate.tracking.tracker import Tracker
+
+    root, truth, annotation = scene
+    config = TrackingConfig()
+    config = replace(config, registration=replace(config.registration, facing=True))
+    tracker = Tracker(FrameStore(open_sequence(root)), annotation.extents, False, config)
+    assert _nearly_round(tracker, {f: annotation.frames[f].matrix for f in MANUAL})  # the mug's body
+    assert not _nearly_round(tracker, {})  # no model: nothing to judge
+    facing = track_sequence(open_sequence(root), annotation, config=config)
+    assert all(np.array_equal(facing.frames[f].matrix, tracked.frames[f].matrix) for f in tracked.frames)
+
+
+def test_no_facing_applies_to_track_only():
+    run = _annotate("--no-facing")
+    assert run.returncode == 2 and "--no-facing applies to --track only" in run.stderr
+
+
 def test_a_refinement_round_may_not_carry_a_frame_far_without_a_better_fit():
     from annotate.tracking.refine import large_step
 

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from annotate.tracking import BACKENDS, closest_about_y, estimate_symmetry_axis, snap_upright
 from annotate.tracking.model import ObjectModel
 from annotate.tracking.quality import pose_difference
-from annotate.tracking.registration import ModelTarget, register
+from annotate.tracking.registration import ModelTarget, RegistrationParams, register
 from annotate.tracking.symmetry import fit_symmetry_axis
 from evaluate.geometry import invert, rotation_about_y, transform
 
@@ -218,3 +218,55 @@ def test_smooth_with_neighbours_catches_a_pose_that_jumped():
     slid["2"] = FrameResult(turned, True, {})
     assert _smooth_with_neighbours(slid, ids, "2", True, config)
     assert not _smooth_with_neighbours(slid, ids, "2", False, config)
+
+
+def _plate(axis: int, at: float, ranges: list[tuple[float, float]], step: float = 0.003) -> np.ndarray:
+    """Grid points (N, 3) m on the plane coordinate[axis] = at, the other two coordinates over ``ranges``."""
+    a, b = (np.arange(lo, hi + 1e-9, step) for lo, hi in ranges)
+    u, v = (g.ravel() for g in np.meshgrid(a, b))
+    columns = [u, v]
+    columns.insert(axis, np.full(len(u), at))
+    return np.stack(columns, axis=1)
+
+
+def test_facing_pairs_keep_a_slab_seen_from_below_off_its_model_top():
+    # a 6 mm slab (a laptop's base) with two walls; the model saw only the slab's top, the frame sees only its
+    # bottom: plain point-to-plane pairs the bottom with the top and slides by the thickness
+    half = 0.003
+    top = _plate(1, half, [(-0.1, 0.1), (-0.06, 0.06)])
+    bottom = _plate(1, -half, [(-0.1, 0.1), (-0.06, 0.06)])
+    back = _plate(2, -0.06, [(-0.1, 0.1), (half, 0.08)])  # faces +z
+    side = _plate(0, -0.1, [(half, 0.08), (-0.06, 0.06)])  # faces +x
+    model = np.concatenate([top, back, side])
+    views = np.concatenate([np.tile([0.0, 1.0, 0.0], (len(top), 1)), np.tile([0.0, 0.0, 1.0], (len(back), 1)), np.tile([1.0, 0.0, 0.0], (len(side), 1))])
+    target = ModelTarget(model, None, voxel_size=0.003, views=views)
+    assert target.oriented
+    normals = np.asarray(target.cloud.normals)
+    assert np.all(np.einsum("ij,ij->i", normals, views) > 0)  # each turned to the side its cameras saw (edges: in between)
+    camera = np.array([0.3, -0.4, 0.3])  # object frame: below the slab, in front of both walls
+    frame = np.concatenate([bottom, back, side]) - camera  # camera frame (no rotation), noise-free
+    init = np.eye(4)
+    init[:3, 3] = camera  # camera -> object: the true pose
+    plain = register(frame, target, init, params=RegistrationParams(facing=False))
+    facing = register(frame, target, init)  # the default
+    assert plain.ok and facing.ok
+    slide_plain = (plain.transform[:3, 3] - camera)[1]
+    slide_facing = (facing.transform[:3, 3] - camera)[1]
+    assert slide_plain == pytest.approx(2 * half, abs=0.001)  # the bottom face pulled onto the model's top
+    assert abs(slide_facing) < 1e-4  # no pair across the slab: the walls keep the true pose
+    assert pose_difference(facing.transform, init)[0] < 0.05
+
+
+def test_model_targets_face_the_cameras_that_saw_them():
+    plane = _plate(2, 0.0, [(-0.05, 0.05), (-0.05, 0.05)], step=0.002)  # object frame z = 0
+    for side in (-1.0, 1.0):  # the camera on the -z side of the plane, then (turned half a turn about x) on the +z side
+        pose = np.eye(4)
+        pose[:3, :3] = np.diag([1.0, -side, -side])  # object -> camera
+        pose[:3, 3] = [0.0, 0.0, 0.5]
+        model = ObjectModel(0.004)
+        model.add_frame(transform(pose, plane), None, pose)
+        target = model.target()
+        camera_obj = invert(pose)[:3, 3]
+        assert camera_obj[2] * side > 0
+        towards = camera_obj - target.points
+        assert target.oriented and np.all(np.einsum("ij,ij->i", np.asarray(target.cloud.normals), towards) > 0)

@@ -27,6 +27,7 @@ class ObjectModel:
         self.keys = np.zeros(0, dtype=np.int64)
         self.sum_xyz = np.zeros((0, 3))
         self.sum_rgb = np.zeros((0, 3))
+        self.sum_view = np.zeros((0, 3))  # unit vectors from the points towards the camera that saw them, object frame
         self.count = np.zeros(0, dtype=np.int64)
         self.hits = np.zeros(0, dtype=np.int64)
         self.frames = 0
@@ -38,6 +39,7 @@ class ObjectModel:
         other = ObjectModel(self.voxel_size)
         other.half = self.half
         other.keys, other.sum_xyz, other.sum_rgb = self.keys.copy(), self.sum_xyz.copy(), self.sum_rgb.copy()
+        other.sum_view = self.sum_view.copy()
         other.count, other.hits, other.frames = self.count.copy(), self.hits.copy(), self.frames
         return other
 
@@ -48,17 +50,19 @@ class ObjectModel:
         idx = np.floor(points / self.voxel_size).astype(np.int64) + _OFFSET
         return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
 
-    def add(self, points_obj: np.ndarray, colors: np.ndarray | None = None, weight: int = 1) -> None:
-        """Add one frame's points (N, 3), already in the object frame, with colours (N, 3) in 0..1.
+    def add(self, points_obj: np.ndarray, colors: np.ndarray | None = None, weight: int = 1, views: np.ndarray | None = None) -> None:
+        """Add one frame's points (N, 3), already in the object frame, with colours (N, 3) in 0..1 and
+        the unit directions (N, 3) from each point towards the camera, object frame (None: unknown).
 
         ``weight`` counts the frame as that many sightings (a trusted frame, e.g. a manual one).
         """
         points_obj = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
         colors = np.zeros_like(points_obj) if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+        views = np.zeros_like(points_obj) if views is None else np.asarray(views, dtype=np.float64).reshape(-1, 3)
         keep = np.all(np.isfinite(points_obj), axis=1)
         if self.half is not None:
             keep &= np.all(np.abs(points_obj) <= self.half, axis=1)
-        points_obj, colors = points_obj[keep], colors[keep]
+        points_obj, colors, views = points_obj[keep], colors[keep], views[keep]
         self.frames += 1
         self._adds_since_target += 1
         if len(points_obj) == 0:
@@ -67,12 +71,14 @@ class ObjectModel:
         n = len(keys)
         sxyz = _sum_rows(inverse, points_obj, n)
         srgb = _sum_rows(inverse, colors, n)
+        sview = _sum_rows(inverse, views, n)
         cnt = np.bincount(inverse, minlength=n)
         all_keys = np.concatenate([self.keys, keys])
         merged, inv = np.unique(all_keys, return_inverse=True)
         m = len(merged)
         new_xyz = _sum_rows(inv, np.concatenate([self.sum_xyz, sxyz]), m)
         new_rgb = _sum_rows(inv, np.concatenate([self.sum_rgb, srgb]), m)
+        self.sum_view = _sum_rows(inv, np.concatenate([self.sum_view, sview]), m)
         self.count = np.bincount(inv, weights=np.concatenate([self.count, cnt]), minlength=m).astype(np.int64)
         self.hits = np.bincount(inv, weights=np.concatenate([self.hits, np.full(n, weight)]), minlength=m).astype(np.int64)
         self.keys, self.sum_xyz, self.sum_rgb = merged, new_xyz, new_rgb
@@ -80,12 +86,15 @@ class ObjectModel:
     def add_frame(self, points_cam: np.ndarray, colors: np.ndarray | None, pose: np.ndarray, weight: int = 1) -> None:
         """Add camera-frame points seen at ``pose`` (4x4 object to camera)."""
         R, t = pose[:3, :3], pose[:3, 3]
-        self.add((np.asarray(points_cam) - t) @ R, colors, weight)
+        points_cam = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        towards = -points_cam / np.maximum(np.linalg.norm(points_cam, axis=1, keepdims=True), 1e-12)
+        self.add((points_cam - t) @ R, colors, weight, towards @ R)
 
     def keep(self, mask: np.ndarray) -> None:
         """Drop the voxels where ``mask`` (len(self),) is False (e.g. seen through by other frames)."""
         mask = np.asarray(mask, dtype=bool)
         self.keys, self.sum_xyz, self.sum_rgb = self.keys[mask], self.sum_xyz[mask], self.sum_rgb[mask]
+        self.sum_view = self.sum_view[mask]
         self.count, self.hits = self.count[mask], self.hits[mask]
         self._target, self._target_key = None, None
 
@@ -107,7 +116,9 @@ class ObjectModel:
         if self._target is None or stale or (self._target_key is not None and self._target_key[2] != min_hits):
             hits = min_hits if np.count_nonzero(self.hits >= min_hits) >= min_share * len(self.hits) else 1
             points, colors = self.points(hits)
-            self._target = ModelTarget(points, colors, self.voxel_size)
+            keep = self.hits >= hits
+            # the mean of the unit view directions: short where the voxel was seen from both sides (a thin wall)
+            self._target = ModelTarget(points, colors, self.voxel_size, self.sum_view[keep] / self.count[keep][:, None])
             self._target_key = key
             self._adds_since_target = 0
         return self._target

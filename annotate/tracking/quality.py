@@ -13,6 +13,10 @@ Figures (stored as extra keys on each tracked frame of the document):
   axis free (a mug with its handle hidden): the spin (deg) at which the colours match the model
   clearly better than at the tracked pose, 0 when none does; the frame is turned by it
   (``colour_spin_correct``) and flagged beyond ``max_colour_spin_deg`` (colour_spin.py);
+- ``free_spin_run`` / ``free_spin_end``: frames whose geometry leaves the spin free: how many such
+  frames in a row hold it, and whether no frame beyond that run fixes the spin (before the first or after
+  the last frame that does); flagged beyond ``max_free_spin_run``, and at either end
+  (consistency.free_spin_runs);
 - ``rotation_jump_deg``: the larger rotation to the previous and the next frame's final pose
   (manual frames at their placed box; consistency.rotation_jumps);
 - for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
@@ -67,6 +71,11 @@ def flag_reasons(figures: dict, config) -> list[str]:
         reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
     if abs(figures.get("colour_spin_deg", 0.0)) > config.max_colour_spin_deg:
         reasons.append(f"turned {figures['colour_spin_deg']:.1f} deg about the axis to match its colours (its shape leaves that spin free)")
+    if config.max_free_spin_run > 0 and figures.get("free_spin_run", 0) > 0:
+        if figures.get("free_spin_end"):
+            reasons.append("its shape leaves the spin about the axis free, and no frame beyond it fixes that spin")
+        elif figures["free_spin_run"] > config.max_free_spin_run:
+            reasons.append(f"its shape leaves the spin about the axis free for {figures['free_spin_run']} frames in a row")
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
         reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
