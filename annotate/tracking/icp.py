@@ -18,6 +18,11 @@ result bit for bit (Open3D 0.20, one thread):
 Only a tie between two model points at the same distance to a frame point could resolve
 otherwise (nanoflann keeps the first one found); model points are voxel centroids, so ties
 do not occur in practice. tests/test_tracking_icp.py checks the equality against Open3D.
+
+The tracker's models also orient their normals (registration.py), and then, with
+``RegistrationParams.facing`` (the default), a pair whose model normal faces away from the camera
+is dropped and a stage ends once the pose stops moving: a departure from Open3D on purpose, which
+Open3D's ``registration_icp`` cannot express. Targets without oriented normals run as above.
 """
 
 from __future__ import annotations
