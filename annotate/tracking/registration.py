@@ -99,13 +99,16 @@ class ModelTarget:
                 normals[away] *= -1.0
                 self.cloud.normals = o3d.utility.Vector3dVector(normals)
                 self.oriented = True
-        normals = np.asarray(self.cloud.normals) if self.cloud.has_normals() else np.zeros((len(self.points), 3))
-        self._normals, self._offsets = normals, np.einsum("ij,ij->i", normals, self.points)
+                # a camera at c faces the surface at point q when n . c > n . q
+                self._normals, self._offsets = normals, np.einsum("ij,ij->i", normals, self.points)
         self._kiss_map = None
         self._tree = None
 
     def facing(self, camera: np.ndarray) -> np.ndarray:
-        """Per model point (M,), whether its oriented surface faces a camera at ``camera`` (3,), object frame, m."""
+        """Per model point (M,), whether its oriented surface faces a camera at ``camera`` (3,), object frame, m
+        (targets built with ``views`` only: :attr:`oriented`)."""
+        if not self.oriented:
+            raise ValueError("the model's normals are not oriented: build the target with views")
         return self._normals @ np.asarray(camera, dtype=np.float64) > self._offsets
 
     def tree(self):
