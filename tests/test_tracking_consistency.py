@@ -10,7 +10,7 @@ from annotate.tracking.config import TrackingConfig
 from annotate.tracking.consistency import chain_departures, free_spin_runs, rotation_jumps
 from annotate.tracking.quality import flag_reasons
 from annotate.tracking.quality import pose_difference
-from annotate.tracking.reconcile import blend_chains, chain_frame_offsets
+from annotate.tracking.reconcile import best_switch, blend_chains, chain_frame_offsets
 from annotate.tracking.tracker import FrameResult
 
 STEP_DEG = 6.0  # the object's turn per frame (a v5 synthetic sequence: 5.6-6.4 deg median)
@@ -60,18 +60,60 @@ def test_chains_that_lost_the_object_are_joined_at_their_seam_not_blended():
     assert not any("chain_switch" in blended[f].figures for f in ids[1:-1])
 
 
-def test_chains_that_never_meet_are_blended_and_keep_their_disagreement():
+def _off_x(deg: float) -> np.ndarray:
+    return _block(Rotation.from_euler("x", deg, degrees=True))
+
+
+def test_chains_that_never_meet_switch_where_the_path_is_smooth():
+    # the forward chain right up to frame 10 then 25 deg off, the backward one 12 deg off the other way up
+    # to frame 10 then right: no frame has both on the object, yet one path (forward to 10, backward from 11) is right
     truth = _truth(21)
-    ids, forward, backward = _chains(truth, lost_after=5, found_from=15)  # no frame where both are right
+    ids = [f"{k:07d}" for k in range(21)]
+    forward = {f: FrameResult(truth[k] if k <= 10 else truth[k] @ _off_x(25), True, {}) for k, f in enumerate(ids)}
+    backward = {f: FrameResult(truth[k] if k >= 11 else truth[k] @ _off_x(-12), True, {}) for k, f in enumerate(ids)}
     out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01)
-    assert not any("chain_switch" in out[f].figures for f in ids[1:-1])
-    assert all(out[f].figures["chain_disagreement_deg"] > 5.0 for f in ids[6:15])
+    errors = [pose_difference(out[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)]
+    assert max(errors) < 1e-4
+    assert all(out[f].figures["chain_switch"] for f in ids[1:-1])
+    # the path is smooth (the truth throughout, up to the constant-velocity prediction's 0.2 mm): no disagreement left
+    assert all(out[f].figures["chain_disagreement_deg"] < 1e-4 for f in ids[1:-1])
+    assert best_switch(ids, forward, {f: backward[f].pose for f in ids}, False, 5.0, 0.01)[0] == 11
+    # the linear blend of the same chains (no thresholds) puts frames 12-18 deg off
+    blended = blend_chains(ids, forward, backward, symmetric=False)
+    assert max(pose_difference(blended[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)) > 10.0
+
+
+def test_chains_lost_together_keep_a_flag_whatever_the_path():
+    truth = _truth(21)
+    ids, forward, backward = _chains(truth, lost_after=5, found_from=15)  # both lost in frames 6-14
+    out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01)
+    errors = {k: pose_difference(out[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)}
+    # every path holds a loss (a 20-25 deg jump, or a switch between two lost chains): the frames it
+    # carries wrong say so, through the path's worst departure or the chains' raw gap
+    assert all(out[ids[k]].figures["chain_disagreement_deg"] > 5.0 for k in errors if errors[k] > 5.0)
+    assert sum(e > 5.0 for e in errors.values()) >= 9
+    assert all(flag_reasons(out[ids[k]].figures, TrackingConfig()) for k in errors if errors[k] > 5.0)
 
 
 def _link_weight(placement_deg: float, link_deg: float) -> float:
     """Two anchors, rotation about one axis: the share of a measured link (sigma ``link_deg``) the least-squares
     estimate takes, against two placed boxes each off by sigma ``placement_deg`` (their difference: twice the variance)."""
     return 2 * placement_deg**2 / (2 * placement_deg**2 + link_deg**2)
+
+
+def test_the_switch_follows_the_chain_that_moves_smoothly():
+    # the backward chain jumps 12 deg between frames 6 and 7 (lost before 7); the forward chain jumps
+    # 15 deg between 12 and 13: the smoothest path switches in 7..12, and its worst step is the hand's motion
+    truth = _truth(21)
+    ids = [f"{k:07d}" for k in range(21)]
+    forward = {f: FrameResult(truth[k] if k <= 12 else truth[k] @ _off_x(15), True, {}) for k, f in enumerate(ids)}
+    backward = {f: truth[k] if k >= 7 else truth[k] @ _off_x(-12) for k, f in enumerate(ids)}
+    s, (deg, metres) = best_switch(ids, forward, backward, False, 5.0, 0.01)
+    assert 7 <= s <= 13
+    assert deg < 1e-4 and metres < 5e-4  # the hand's motion: a turning object's velocity turns too (0.2 mm)
+    # a path through a loss scores that loss: with a backward chain that jumps with the forward one, 15 deg
+    same = {f: forward[f].pose for f in ids}
+    assert abs(best_switch(ids, forward, same, False, 5.0, 0.01)[1][0] - 15.0) < 1e-6
 
 
 def test_a_link_from_one_chain_alone_is_not_trusted():
@@ -315,3 +357,13 @@ def test_runs_of_free_spin_frames_are_measured_and_long_or_one_sided_ones_flagge
     assert flag_reasons({"free_spin_run": 4, "free_spin_end": False}, config) == ["its shape leaves the spin about the axis free for 4 frames in a row"]
     assert len(flag_reasons({"free_spin_run": 1, "free_spin_end": True}, config)) == 1
     assert flag_reasons({"free_spin_run": 9, "free_spin_end": True}, TrackingConfig(max_free_spin_run=0)) == []
+
+
+def test_a_weak_second_chain_and_a_far_rejected_refinement_are_flagged():
+    config = TrackingConfig()  # min fitness 0.5, refinement steps 10 deg / 20 mm
+    assert not flag_reasons({"fitness": 0.52, "second_chain_fitness": 0.55}, config)
+    assert any("second tracking chain" in r for r in flag_reasons({"fitness": 0.52, "second_chain_fitness": 0.43}, config))
+    # a rejected step within the limits was a small correction turned down; beyond them a rival pose
+    assert not flag_reasons({"refine_rejected_deg": 9.0, "refine_rejected_m": 0.019}, config)
+    assert any("10.4 deg and 29 mm" in r for r in flag_reasons({"refine_rejected_deg": 10.37, "refine_rejected_m": 0.029}, config))
+    assert flag_reasons({"refine_rejected_deg": 2.0, "refine_rejected_m": 0.021}, config)
