@@ -432,6 +432,28 @@ def test_frames_flagged_for_review_are_posed_but_do_not_carve(box_scene):
     assert reconstruct_sequence(sequence, annotation).report["frames_used"] == 30
 
 
+def test_frames_flagged_only_for_their_spin_still_carve():
+    """A frame whose only flag doubts the spin its shape leaves free (a mug's handle hidden) carves; one
+    flagged for anything else, also together with the spin, does not."""
+    from annotate.tracking.config import TrackingConfig
+    from annotate.tracking.quality import document_figures
+    from reconstruct.pipeline import carving_frames
+    from sequences.annotation import Annotation, FramePose
+
+    config = TrackingConfig(max_free_spin_run=5)
+    spin = document_figures({"fitness": 0.9, "free_spin_run": 8, "free_spin_end": False}, config)
+    both = document_figures({"fitness": 0.3, "free_spin_run": 8, "free_spin_end": False}, config)
+    other = document_figures({"fitness": 0.3}, config)
+    assert spin["flagged"] and spin["flag_spin_only"]
+    assert both["flagged"] and "flag_spin_only" not in both and "flag_spin_only" not in other
+    assert "flagged" not in document_figures({"fitness": 0.9, "free_spin_run": 2, "free_spin_end": False}, config)
+    ids = [f"{k:07d}" for k in range(40)]
+    extras = {ids[1]: spin, ids[2]: both, ids[3]: other}
+    frames = {f: FramePose.from_matrix(np.eye(4), "tracked", extras.get(f, {})) for f in ids}
+    annotation = Annotation(sequence="mug", category="mug", symmetry="none", extents=np.full(3, 0.1), frames=frames)
+    assert carving_frames(annotation, ids) == [f for f in ids if f not in (ids[2], ids[3])]
+
+
 def test_box_scene_is_reconstructed_to_the_millimetre(box_scene):
     sequence, annotation = _load(box_scene)
     calls = []

@@ -74,6 +74,20 @@ def flag_reasons(figures: dict, config) -> list[str]:
         reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
     if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
         reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
+    reasons.extend(spin_reasons(figures, config))
+    if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
+        reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
+    if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
+        reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose")
+    if figures.get("manual_correction_m", 0.0) > config.max_manual_correction_m:
+        reasons.append(f"the placed box is {figures['manual_correction_m'] * 1000:.0f} mm off the tracked pose")
+    return reasons
+
+
+def spin_reasons(figures: dict, config) -> list[str]:
+    """The reasons that doubt only the spin about the axis, in frames whose shape leaves it free (a mug's
+    handle hidden): the rest of the pose, and so the free space the frame sees, is as good as any other's."""
+    reasons = []
     if abs(figures.get("colour_spin_deg", 0.0)) > config.max_colour_spin_deg:
         reasons.append(f"turned {figures['colour_spin_deg']:.1f} deg about the axis to match its colours (its shape leaves that spin free)")
     if config.max_free_spin_run > 0 and figures.get("free_spin_run", 0) > 0:
@@ -81,12 +95,6 @@ def flag_reasons(figures: dict, config) -> list[str]:
             reasons.append("its shape leaves the spin about the axis free, and no frame beyond it fixes that spin")
         elif figures["free_spin_run"] > config.max_free_spin_run:
             reasons.append(f"its shape leaves the spin about the axis free for {figures['free_spin_run']} frames in a row")
-    if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
-        reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
-    if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
-        reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose")
-    if figures.get("manual_correction_m", 0.0) > config.max_manual_correction_m:
-        reasons.append(f"the placed box is {figures['manual_correction_m'] * 1000:.0f} mm off the tracked pose")
     return reasons
 
 
@@ -107,6 +115,9 @@ def document_figures(figures: dict, config) -> dict:
     if reasons:
         out["flagged"] = True
         out["flag_reason"] = "; ".join(reasons)
+        if reasons == spin_reasons(figures, config):
+            # only the spin is in doubt: reconstruction still carves with the frame (reconstruct.pipeline.carving_frames)
+            out["flag_spin_only"] = True
     return out
 
 
