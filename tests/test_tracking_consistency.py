@@ -77,7 +77,12 @@ def test_chains_that_never_meet_switch_where_the_path_is_smooth():
     assert all(out[f].figures["chain_switch"] for f in ids[1:-1])
     # the path is smooth (the truth throughout, up to the constant-velocity prediction's 0.2 mm): no disagreement left
     assert all(out[f].figures["chain_disagreement_deg"] < 1e-4 for f in ids[1:-1])
-    assert best_switch(ids, forward, {f: backward[f].pose for f in ids}, False, 5.0, 0.01)[0] == 11
+    assert best_switch(ids, forward, backward, {f: backward[f].pose for f in ids}, False, 5.0, 0.01)[0] == 11
+    # a frame that failed in one chain keeps a prediction there, not scored (it takes the other chain's pose)
+    backward[ids[15]] = FrameResult(backward[ids[14]].pose, False, {"error": "no depth"})
+    assert best_switch(ids, forward, backward, {f: backward[f].pose for f in ids}, False, 5.0, 0.01, (truth[0], truth[-1]))[0] == 11
+    out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1]))
+    assert max(pose_difference(out[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1) if k != 15) < 1e-4
     # the linear blend of the same chains (no thresholds) puts frames 12-18 deg off
     blended = blend_chains(ids, forward, backward, symmetric=False)
     assert max(pose_difference(blended[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)) > 10.0
@@ -108,12 +113,31 @@ def test_the_switch_follows_the_chain_that_moves_smoothly():
     ids = [f"{k:07d}" for k in range(21)]
     forward = {f: FrameResult(truth[k] if k <= 12 else truth[k] @ _off_x(15), True, {}) for k, f in enumerate(ids)}
     backward = {f: truth[k] if k >= 7 else truth[k] @ _off_x(-12) for k, f in enumerate(ids)}
-    s, (deg, metres) = best_switch(ids, forward, backward, False, 5.0, 0.01)
+    found = {f: FrameResult(T, True, {}) for f, T in backward.items()}
+    s, (deg, metres), _ = best_switch(ids, forward, found, backward, False, 5.0, 0.01, (truth[0], truth[-1]))
     assert 7 <= s <= 13
     assert deg < 1e-4 and metres < 5e-4  # the hand's motion: a turning object's velocity turns too (0.2 mm)
     # a path through a loss scores that loss: with a backward chain that jumps with the forward one, 15 deg
     same = {f: forward[f].pose for f in ids}
-    assert abs(best_switch(ids, forward, same, False, 5.0, 0.01)[1][0] - 15.0) < 1e-6
+    assert abs(best_switch(ids, forward, forward, same, False, 5.0, 0.01)[1][0] - 15.0) < 1e-6
+
+
+def test_a_chain_drifting_smoothly_away_from_the_far_anchor_is_not_the_smoothest_path():
+    # the forward chain drifts 2.2 deg per frame (no jump: 44 deg off at the far anchor), the backward one is
+    # 12 deg off up to frame 5 and right from 6; no frame has the two within twice the thresholds from 6 on
+    truth = _truth(21)
+    ids = [f"{k:07d}" for k in range(21)]
+    forward = {f: FrameResult(truth[k] @ _off_x(2.2 * k), True, {}) for k, f in enumerate(ids)}
+    backward = {f: FrameResult(truth[k] if k >= 6 else truth[k] @ _off_x(-12), True, {}) for k, f in enumerate(ids)}
+    aligned = {f: r.pose for f, r in backward.items()}
+    # without the anchors the all-forward path looks smooth; with them its step into the far anchor counts
+    assert best_switch(ids, forward, backward, aligned, False, 5.0, 0.01)[0] == 20
+    s, (deg, _), _ = best_switch(ids, forward, backward, aligned, False, 5.0, 0.01, (truth[0], truth[-1]))
+    assert s < 20 and deg >= 5.0
+    out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1]))
+    errors = {k: pose_difference(out[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)}
+    assert max(errors.values()) < 13.0  # the all-forward path: up to 42 deg
+    assert all(flag_reasons(out[ids[k]].figures, TrackingConfig()) for k in errors if errors[k] > 5.0)
 
 
 def test_a_link_from_one_chain_alone_is_not_trusted():

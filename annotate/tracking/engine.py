@@ -186,7 +186,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     for k, (a, b) in enumerate(zip(a_idx, a_idx[1:])):
         forward = {f: FrameResult(r.pose @ frames_of[k], r.ok, r.figures) for f, r in forwards[k].items()}
         backward = {f: FrameResult(r.pose @ frames_of[k + 1], r.ok, r.figures) for f, r in backwards[k].items()}
-        blended = blend_chains(ids[a : b + 1], forward, backward, symmetric, config.max_chain_disagreement_deg, config.max_chain_disagreement_m)
+        blended = blend_chains(ids[a : b + 1], forward, backward, symmetric, config.max_chain_disagreement_deg, config.max_chain_disagreement_m,
+                               anchors=(results[ids[a]].pose, results[ids[b]].pose))
         results.update(blended)
         for f in ids[a + 1 : b]:
             if forward[f].ok and backward[f].ok:
@@ -262,7 +263,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         figures = document_figures(figures, config)
         if frame_id in placed and annotation.frames[frame_id].source == "manual":
             old = annotation.frames[frame_id]
-            extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason")}
+            extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason", "flag_spin_only")}
             extra.update(figures)
             if config.update_manual:
                 new = FramePose.from_matrix(poses[frame_id], "manual", extra)

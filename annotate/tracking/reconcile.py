@@ -35,6 +35,7 @@ def blend_chains(
     max_deg: float = np.inf,
     max_m: float = np.inf,
     ramp: int = 2,
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, FrameResult]:
     """Blend the forward chain (from ``frame_ids[0]``) and the backward chain (from ``frame_ids[-1]``).
 
@@ -56,8 +57,9 @@ where they still meet):
     met within 5 deg at frame 27.
 
     If no frame has the two within twice the thresholds, the path switches at once where it moves most
-    smoothly (:func:`best_switch`), and the frames a jump separates from the switch get that path's worst
-    departure as their disagreement. Measured (v5, 4 manual frames off by up to 3 deg; 24 sequences): the
+    smoothly (:func:`best_switch`, the path's steps into the anchors counted with ``anchors``: the two
+    anchor poses), and a frame a jump separates from the switch gets, as its disagreement, the worst
+    departure between it and the anchor its part of the path comes from. Measured (v5, 4 manual frames off by up to 3 deg; 24 sequences): the
     linear blend this replaces mixed a lost chain into the frames of laptops seeds 1-2 (rotation p90 4.3
     and 7.5 deg; with the switch 2.1 and 3.4); over all 24, failing goal checks 11 -> 10, and with 3
     manual frames off by up to 5 deg 30 -> 26, rotation p90 sum 116 -> 70 deg.
@@ -85,7 +87,7 @@ where they still meet):
     steps = np.abs(np.diff(np.median(np.stack([g[:-2], g[1:-1], g[2:]]), axis=0))) if len(g) > 3 else np.zeros(0)
     # step j lies between gapped frames j + 1 and j + 2 (the running median's centres)
     jumps = [gapped[j + 1] for j in np.flatnonzero(steps > max_deg)]
-    seam_gap = None
+    own_gap: dict[int, tuple[float, float]] | None = None  # set where the path switches at once
     if jumps:
         # the frame where the two chains come closest, in units of the thresholds
         k_best = min(gaps, key=lambda g: max(gaps[g][0] / max_deg, gaps[g][1] / max_m))
@@ -104,7 +106,7 @@ where they still meet):
         else:
             # no frame has both chains on the object: the seam is where the path (forward chain before it,
             # backward chain from it) moves most smoothly, switched at once
-            seam, seam_gap = best_switch(frame_ids, forward, aligned, symmetric, max_deg, max_m)
+            seam, _, own_gap = best_switch(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
             lo, hi = seam, seam - 1
     out: dict[str, FrameResult] = {}
     for k, frame_id in enumerate(inner, start=1):
@@ -127,11 +129,11 @@ where they still meet):
             figures["chain_disagreement_raw_deg"], figures["chain_disagreement_raw_m"] = deg, metres
             # the loss explains the gap only of the frames it separates from the seam; between the seam and
             # a loss-free stretch the two chains are both meant to be on the object, and their gap stands
-            if seam_gap is None and any(min(k, seam) <= j < max(k, seam) for j in jumps):
+            if own_gap is None and any(min(k, seam) <= j < max(k, seam) for j in jumps):
                 deg, metres = gaps[frame_ids[seam]]
-            elif seam_gap is not None and any(min(k, seam - 1) <= j < max(k, seam) for j in jumps):
+            elif own_gap is not None and any(min(k, seam - 1) <= j < max(k, seam) for j in jumps):
                 # a path switched at once (between seam - 1 and seam); jump j lies between frames j and j + 1
-                deg, metres = seam_gap
+                deg, metres = own_gap[k]
         figures["chain_disagreement_deg"] = deg
         figures["chain_disagreement_m"] = metres
         out[frame_id] = FrameResult(pose, f.ok or b.ok, figures)
@@ -141,51 +143,75 @@ where they still meet):
 def best_switch(
     frame_ids: list[str],
     forward: dict[str, FrameResult],
-    backward: dict[str, np.ndarray],
+    backward: dict[str, FrameResult],
+    aligned: dict[str, np.ndarray],
     symmetric: bool,
     max_deg: float,
     max_m: float,
-) -> tuple[int, tuple[float, float]]:
+    anchors: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[int, tuple[float, float], dict[int, tuple[float, float]]]:
     """The index s (1..n) where the path of the forward chain's poses before s and the backward chain's
-    from s on (``backward``: poses aligned to the forward chain) moves most smoothly, and the (deg, m)
-    of that path's worst departure (its own inconsistency: the frames it joins get it as their chains'
-    disagreement).
+    from s on (``aligned``: the backward chain's poses aligned to the forward chain) moves most smoothly,
+    the (deg, m) of that path's worst departure, and per inner index the (deg, m) of the worst departure
+    between that frame and the anchor its part of the path starts from (a frame that a loss separates from
+    the switch gets that as its chains' disagreement: its pose comes from that anchor through that chain alone).
 
     A chain that loses the object jumps: its pose departs from the constant-velocity prediction by a
     loss's size (7-25 deg on the v5 mugs) instead of the hand's noise (about 1 deg). Each candidate path
     is scored by its worst departure in units of the thresholds, inside the forward part, inside the
-    backward part and across the switch (each side's prediction of the other). Measured on a v5 laptop
-    (seed 1, frames 35-66): the backward chain was lost from frame 62 back and the forward one within
-    2 deg throughout, yet no frame had the two within twice the thresholds, and the linear blend put
-    the lost chain's half into 25 frames (rotation p90 4.3 deg; with the path 2.1).
+    backward part and across the switch (each side's prediction of the other). With ``anchors`` (the
+    poses of frame_ids[0] and [-1], where the chains start), the path's steps into them count too, so a
+    chain that drifts smoothly away from the far anchor does not win. A departure involving a frame that
+    failed in its chain is not scored (that frame keeps a prediction, and takes the other chain's pose).
+    Measured on a v5 laptop (seed 1, frames 35-66): no frame had the two chains within twice the
+    thresholds, and the linear blend put the slid forward chain into 25 frames (rotation p90 4.3 deg;
+    with the switch 2.1).
     """
     n = len(frame_ids) - 1
     F = {k: forward[frame_ids[k]].pose for k in range(1, n)}
-    B = {k: backward[frame_ids[k]] for k in range(1, n)}
+    B = {k: aligned[frame_ids[k]] for k in range(1, n)}
+    ok_f = {k: forward[frame_ids[k]].ok for k in range(1, n)}
+    ok_b = {k: backward[frame_ids[k]].ok for k in range(1, n)}
+    if anchors is not None:
+        F[0], B[n] = anchors
+        ok_f[0] = ok_b[n] = True
 
     def cost(P: np.ndarray, Q: np.ndarray) -> tuple[float, float, float]:
         deg, metres = pose_difference(P, Q, symmetric)
         return max(deg / max_deg, metres / max_m), deg, metres
 
+    def has(chain: dict, ok: dict, *ks: int) -> bool:
+        return all(k in chain and ok[k] for k in ks)
+
     # departures inside each chain: the forward one predicted from the two frames before, the backward one from the two after
-    inside_f = {k: cost(predict(F[k - 1], F[k - 2]), F[k]) for k in range(3, n)}
-    inside_b = {k: cost(predict(B[k + 1], B[k + 2]), B[k]) for k in range(1, n - 2)}
+    inside_f = {k: cost(predict(F[k - 1], F[k - 2]), F[k]) for k in range(2, n) if has(F, ok_f, k, k - 1, k - 2)}
+    inside_b = {k: cost(predict(B[k + 1], B[k + 2]), B[k]) for k in range(1, n - 1) if has(B, ok_b, k, k + 1, k + 2)}
     none = (0.0, 0.0, 0.0)
     best, best_score = n, (np.inf, 0.0, 0.0)
     for s in range(1, n + 1):
-        worst = max([inside_f[k] for k in range(3, s)] + [inside_b[k] for k in range(s, n - 2)] + [none])
-        across = none
-        if 1 < s < n:
-            sides = []
-            if s - 2 >= 1:
-                sides.append(cost(predict(F[s - 1], F[s - 2]), B[s]))
-            if s + 1 <= n - 1:
-                sides.append(cost(predict(B[s], B[s + 1]), F[s - 1]))
-            across = max(sides or [cost(F[s - 1], B[s])])
-        score = max(worst, across)
+        worst = max([v for k, v in inside_f.items() if k < s] + [v for k, v in inside_b.items() if k >= s] + [none])
+        # across the switch (between s - 1 and s): each side's prediction of the other's pose
+        sides = []
+        if has(F, ok_f, s - 1, s - 2) and has(B, ok_b, s):
+            sides.append(cost(predict(F[s - 1], F[s - 2]), B[s]))
+        if has(B, ok_b, s, s + 1) and has(F, ok_f, s - 1):
+            sides.append(cost(predict(B[s], B[s + 1]), F[s - 1]))
+        if not sides and 1 < s < n and has(F, ok_f, s - 1) and has(B, ok_b, s):
+            sides.append(cost(F[s - 1], B[s]))
+        score = max([worst] + sides)
         if score[0] < best_score[0]:
             best, best_score = s, score
-    return best, (best_score[1], best_score[2])
+    # each frame's own doubt: the worst departure between it and the anchor its part of the path starts from
+    own: dict[int, tuple[float, float]] = {}
+    running = none
+    for k in range(1, best):
+        running = max([running] + [inside_f[k]] if k in inside_f else [running])
+        own[k] = (running[1], running[2])
+    running = none
+    for k in range(n - 1, best - 1, -1):
+        running = max([running] + [inside_b[k]] if k in inside_b else [running])
+        own[k] = (running[1], running[2])
+    return best, (best_score[1], best_score[2]), own
 
 
 def common_correction(tracked: dict[str, np.ndarray], placed: dict[str, np.ndarray], symmetric: bool) -> np.ndarray:

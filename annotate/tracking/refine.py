@@ -124,6 +124,9 @@ def refine_all(
                 figures = dict(previous.figures)
                 figures.update(result.figures)
                 figures.pop("error", None)
+                if "refine_rejected_deg" not in result.figures:  # a step this round took: an earlier round's rival is gone
+                    figures.pop("refine_rejected_deg", None)
+                    figures.pop("refine_rejected_m", None)
                 updated[frame_id] = FrameResult(result.pose, True, figures)
                 if result.figures.get("fitness", 0.0) >= config.min_fitness:
                     last = (last + [result.pose])[-2:]
