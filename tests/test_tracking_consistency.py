@@ -391,3 +391,19 @@ def test_a_weak_second_chain_and_a_far_rejected_refinement_are_flagged():
     assert not flag_reasons({"refine_rejected_deg": 9.0, "refine_rejected_m": 0.019}, config)
     assert any("10.4 deg and 29 mm" in r for r in flag_reasons({"refine_rejected_deg": 10.37, "refine_rejected_m": 0.029}, config))
     assert flag_reasons({"refine_rejected_deg": 2.0, "refine_rejected_m": 0.021}, config)
+
+
+def test_frames_beyond_the_seam_are_only_as_good_as_their_chain_back_to_its_anchor():
+    # both chains right in frames 12-18 (the seam); the forward chain lost after 18, the backward chain
+    # 8 deg off in frames 21-26 (a jump at 27 -> 26 and back at 21 -> 20): the chains' gap at the seam says
+    # nothing about those frames, the backward chain's own jump on its way from frame 30 does
+    truth = _truth(31)
+    ids, forward, backward = _chains(truth, lost_after=18, found_from=12)
+    for k in range(21, 27):
+        backward[ids[k]] = FrameResult(truth[k] @ _off_x(8), True, {})
+    out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1]))
+    errors = {k: pose_difference(out[ids[k]].pose, truth[k])[0] for k in range(1, 30)}
+    figures = {k: out[ids[k]].figures for k in range(1, 30)}
+    assert all(abs(errors[k] - 8.0) < 1e-4 for k in range(21, 27)) and all(errors[k] < 1e-4 for k in range(27, 30))
+    assert all(figures[k]["chain_disagreement_deg"] > 5.0 for k in range(21, 27))  # the seam's own gap: 0
+    assert all(figures[k]["chain_disagreement_deg"] < 1.0 for k in range(27, 30))  # no jump between them and frame 30
