@@ -62,10 +62,9 @@ where they still meet):
     If no frame has the two within twice the thresholds, the path switches at once where it moves most
     smoothly (:func:`best_switch`, the path's steps into the anchors counted with ``anchors``: the two
     anchor poses), and a frame a jump separates from the switch gets, as its disagreement, the worst
-    departure between it and the anchor its part of the path comes from. Measured (v5, 4 manual frames off by up to 3 deg; 24 sequences): the
-    linear blend this replaces mixed a lost chain into the frames of laptops seeds 1-2 (rotation p90 4.3
-    and 7.5 deg; with the switch 2.1 and 3.4); over all 24, failing goal checks 11 -> 10, and with 3
-    manual frames off by up to 5 deg 30 -> 26, rotation p90 sum 116 -> 70 deg.
+    departure between it and the anchor its part of the path comes from. Measured (v5, 4 manual frames
+    off by up to 3 deg; 24 sequences): the linear blend this replaces mixed a lost chain into the frames
+    of laptops seeds 1-2 (rotation p90 4.3 and 7.5 deg; with the switch 2.4 and 1.2).
     """
     n = len(frame_ids) - 1
     inner = frame_ids[1:-1]
@@ -171,7 +170,7 @@ def best_switch(
     failed in its chain is not scored (that frame keeps a prediction, and takes the other chain's pose).
     Measured on a v5 laptop (seed 1, frames 35-66): no frame had the two chains within twice the
     thresholds, and the linear blend put the slid forward chain into 25 frames (rotation p90 4.3 deg;
-    with the switch 2.1).
+    with the switch 2.4).
     """
     n = len(frame_ids) - 1
     F = {k: forward[frame_ids[k]].pose for k in range(1, n)}
@@ -193,9 +192,15 @@ def best_switch(
     inside_f = {k: cost(predict(F[k - 1], F[k - 2]), F[k]) for k in range(2, n) if has(F, ok_f, k, k - 1, k - 2)}
     inside_b = {k: cost(predict(B[k + 1], B[k + 2]), B[k]) for k in range(1, n - 1) if has(B, ok_b, k, k + 1, k + 2)}
     none = (0.0, 0.0, 0.0)
+    # the worst departure of the forward part before each s (its frames 1..s-1) and of the backward part from s on
+    before = [none] * (n + 1)
+    for k in range(1, n + 1):
+        before[k] = max(before[k - 1], inside_f.get(k - 1, none))
+    after = [none] * (n + 1)
+    for k in range(n - 1, 0, -1):
+        after[k] = max(after[k + 1], inside_b.get(k, none))
     best, best_score = n, (np.inf, 0.0, 0.0)
     for s in ([at] if at is not None else range(1, n + 1)):
-        worst = max([v for k, v in inside_f.items() if k < s] + [v for k, v in inside_b.items() if k >= s] + [none])
         # across the switch (between s - 1 and s): each side's prediction of the other's pose
         sides = []
         if has(F, ok_f, s - 1, s - 2) and has(B, ok_b, s):
@@ -204,19 +209,11 @@ def best_switch(
             sides.append(cost(predict(B[s], B[s + 1]), F[s - 1]))
         if not sides and 1 < s < n and has(F, ok_f, s - 1) and has(B, ok_b, s):
             sides.append(cost(F[s - 1], B[s]))
-        score = max([worst] + sides)
+        score = max([before[s], after[s]] + sides)
         if score[0] < best_score[0]:
             best, best_score = s, score
     # each frame's own doubt: the worst departure between it and the anchor its part of the path starts from
-    own: dict[int, tuple[float, float]] = {}
-    running = none
-    for k in range(1, best):
-        running = max([running] + [inside_f[k]] if k in inside_f else [running])
-        own[k] = (running[1], running[2])
-    running = none
-    for k in range(n - 1, best - 1, -1):
-        running = max([running] + [inside_b[k]] if k in inside_b else [running])
-        own[k] = (running[1], running[2])
+    own = {k: before[k + 1][1:] if k < best else after[k][1:] for k in range(1, n)}
     return best, (best_score[1], best_score[2]), own
 
 
