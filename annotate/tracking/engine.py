@@ -109,10 +109,7 @@ def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: lis
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
     """Whether the model of the placed frames, spun by 10 deg about its fitted axis, still fits itself
     (colour_spin.ColourSpinCheck.round: a mug's body; not a laptop or a camera)."""
-    model = tracker.new_model()
-    for frame_id, pose in placed.items():
-        tracker.add_to_model(model, frame_id, pose)
-    points, _ = model.points(1)
+    points, _ = build_model(tracker, placed, len(placed), free_space=False).points(1)
     if len(points) < 30:
         return False
     try:

@@ -52,6 +52,11 @@ def in_box_share(points_cam: np.ndarray, pose: np.ndarray, extents: np.ndarray) 
 
 def flag_reasons(figures: dict, config) -> list[str]:
     """Reasons a frame needs review, from its figures and the thresholds of a TrackingConfig."""
+    return pose_reasons(figures, config) + spin_reasons(figures, config)
+
+
+def pose_reasons(figures: dict, config) -> list[str]:
+    """The reasons of :func:`flag_reasons` that doubt more than the spin a frame's shape leaves free."""
     reasons = []
     if figures.get("error"):
         reasons.append(str(figures["error"]))
@@ -74,7 +79,6 @@ def flag_reasons(figures: dict, config) -> list[str]:
         reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
     if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
         reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
-    reasons.extend(spin_reasons(figures, config))
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
         reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
@@ -109,13 +113,13 @@ def large_rejected_step(figures: dict, config) -> bool:
 def document_figures(figures: dict, config) -> dict:
     """Figures as written to the document: rounded, the raw error message dropped, and
     ``flagged: true`` with ``flag_reason`` where :func:`flag_reasons` finds any."""
-    reasons = flag_reasons(figures, config)
+    pose, spin = pose_reasons(figures, config), spin_reasons(figures, config)
     out = rounded(figures)
     out.pop("error", None)
-    if reasons:
+    if pose or spin:
         out["flagged"] = True
-        out["flag_reason"] = "; ".join(reasons)
-        if reasons == spin_reasons(figures, config):
+        out["flag_reason"] = "; ".join(pose + spin)
+        if not pose:
             # only the spin is in doubt: reconstruction still carves with the frame (reconstruct.pipeline.carving_frames)
             out["flag_spin_only"] = True
     return out

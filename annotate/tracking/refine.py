@@ -25,8 +25,9 @@ from .symmetry import closest_about_y
 from .tracker import FrameResult, Tracker
 
 
-def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int, always: list[str] = ()) -> ObjectModel:
-    """The model of up to ``max_frames`` evenly spaced posed frames (plus ``always``), object frame."""
+def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int, always: list[str] = (), free_space: bool = True) -> ObjectModel:
+    """The model of up to ``max_frames`` evenly spaced posed frames (plus ``always``), object frame; with
+    ``free_space`` (and ``config.free_space_tolerance`` > 0), without the voxels the frames see through."""
     ids = list(poses)
     if len(ids) > max_frames:
         picks = np.unique(np.linspace(0, len(ids) - 1, max_frames).round().astype(int))
@@ -36,7 +37,7 @@ def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int,
     for frame_id in ids:
         tracker.add_to_model(model, frame_id, poses[frame_id])
     config = tracker.config
-    if config.free_space_tolerance > 0 and len(model):
+    if free_space and config.free_space_tolerance > 0 and len(model):
         # a voxel the frames see through more often than they see it is not rigid with the object (a hand)
         points, _ = model.points(1)
         through, seen = free_space_votes(points, {f: poses[f] for f in ids}, tracker.store, config.free_space_tolerance)
