@@ -86,9 +86,11 @@ where they still meet):
     # running median of 3 sees through it.
     gapped = [frame_ids.index(f) for f in inner if f in gaps]
     g = np.array([gaps[frame_ids[k]][0] for k in gapped])
-    steps = np.abs(np.diff(np.median(np.stack([g[:-2], g[1:-1], g[2:]]), axis=0))) if len(g) > 3 else np.zeros(0)
-    # step j lies between gapped frames j + 1 and j + 2 (the running median's centres)
-    jumps = [gapped[j + 1] for j in np.flatnonzero(steps > max_deg)]
+    # the end frames repeated, so that a chain lost on its first step from the anchor shows too
+    padded = np.pad(g, 1, mode="edge")
+    steps = np.abs(np.diff(np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0))) if len(g) >= 3 else np.zeros(0)
+    # step j lies between gapped frames j and j + 1 (the running median's centres)
+    jumps = [gapped[j] for j in np.flatnonzero(steps > max_deg)]
     own_gap: dict[int, tuple[float, float]] | None = None  # set where the path switches at once
     if jumps:
         # the frame where the two chains come closest, in units of the thresholds
