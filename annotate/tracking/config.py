@@ -21,6 +21,9 @@ class TrackingConfig:
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
+    coarse_voxel_factor: float = 2.0  #: ... after one round against a model this many times coarser (refine.coarse_round; <= 1: none)
+    coarse_step_deg: float = 5.0  #: ... in which a frame turns at most this far (deg)
+    coarse_step_m: float = 0.01  #: ... and moves at most this far (m)
     max_refine_step_deg: float = 10.0  #: a joint-refinement round turning a frame further keeps its pose (0: no limit)
     max_refine_step_m: float = 0.02  #: ... and so does one moving it further than this (m; 0: no limit)
     refine_step_fitness_gain: float = 0.05  #: ... unless the turned pose fits the same points by this much better

@@ -6,7 +6,9 @@
    each frame registered to the chain's growing model (propagate.py);
 3. reconcile: between two anchors, the two chains are blended, or joined at the frame where they
    meet when one of them lost the object (reconcile.py);
-4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py);
+4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py), first once
+   against a twice coarser model, where the copies of a detail that stretches between manual frames left
+   side by side merge (refine.coarse_round);
    where the two chains disagreed, the frame is re-registered from each chain's pose: when no
    start finds a rival pose fitting as well and the pose is smooth with its neighbours, the
    disagreement is re-measured against the final pose (refine.recheck_disagreements); the
@@ -53,7 +55,7 @@ from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .model import ObjectModel
-from .refine import build_model, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, smooth_refined, trusted_model
+from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, smooth_refined, trusted_model
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
@@ -167,7 +169,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     position = {f: i for i, f in enumerate(ids)}
     a_idx = [position[m] for m in anchors]
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
-    steps = _Steps(chain_frames + config.global_rounds * len(ids), progress)
+    rounds = config.global_rounds + (1 if config.coarse_voxel_factor > 1 else 0)
+    steps = _Steps(chain_frames + rounds * len(ids), progress)
 
     # 2-3: chains from every anchor, brought into anchor 0's object frame, and reconciled
     results: dict[str, FrameResult] = {}
@@ -203,6 +206,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
 
     # 4: joint refinement against the model of all frames
     chained = {f: r.pose for f, r in results.items()}
+    results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m))
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
