@@ -4,6 +4,7 @@ of the final poses against the chains and against the motion (reconcile.py, cons
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from annotate.tracking.config import TrackingConfig
@@ -75,6 +76,28 @@ def test_a_chain_lost_on_its_first_step_is_seen():
     ids, forward, backward = _chains(truth, lost_after=2, found_from=0)
     out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01)
     assert max(pose_difference(out[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)) < 1e-4
+
+
+def test_frames_both_chains_jumped_on_their_way_to_are_flagged_and_keep_their_pose():
+    # both chains turn 10 deg the same way: the forward one from frame 5 on, the backward one (going back) from
+    # frame 20 down. Their gap stays small where both are off (frames 5-19), so no loss shows in it; yet each
+    # chain jumped between its anchor and those frames (measured: the bundled sample mug, frames 16-25 10-13 deg
+    # off, chains 4-5 deg apart, no flag)
+    truth = _truth(26)
+    ids = [f"{k:07d}" for k in range(len(truth))]
+    off = _block(Rotation.from_euler("y", 10, degrees=True))
+    forward = {f: FrameResult(T @ off if k >= 5 else T, True, {"fitness": 0.9}) for k, (f, T) in enumerate(zip(ids, truth))}
+    backward = {f: FrameResult(T @ off if k < 20 else T, True, {"fitness": 0.9}) for k, (f, T) in enumerate(zip(ids, truth))}
+    out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1]))
+    config = TrackingConfig()
+    for k, f in enumerate(ids[1:-1], start=1):
+        figures = out[f].figures
+        if 5 <= k < 20:
+            assert figures["chains_jumped_deg"] == pytest.approx(10.0, abs=0.5) and flag_reasons(figures, config), k
+        else:
+            assert "chains_jumped_deg" not in figures, k
+    # a flag, not a new pose: where both chains agree the frame keeps their (wrong) pose for a person to review
+    assert all(pose_difference(out[ids[k]].pose, truth[k] @ off)[0] < 1e-3 for k in range(5, 20))
 
 
 def _off_x(deg: float) -> np.ndarray:
