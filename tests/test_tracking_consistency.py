@@ -61,7 +61,7 @@ def test_chains_that_lost_the_object_are_joined_at_their_seam_not_blended():
     assert not any("chain_switch" in blended[f].figures for f in ids[1:-1])
 
 
-def test_a_chain_lost_on_its_first_step_is_seen():
+def test_a_chain_lost_between_the_first_two_inner_frames_is_seen():
     # the forward chain right at frame 1 only, 25 deg off from frame 2 on; the backward one right throughout.
     # The gaps' running median starts at frame 2 unless the end frames are repeated: the loss between frames
     # 1 and 2 went unseen and the linear blend put frame 28 about 23 deg off (measured: a v5 mug, seed 3,
@@ -76,6 +76,33 @@ def test_a_chain_lost_on_its_first_step_is_seen():
     ids, forward, backward = _chains(truth, lost_after=2, found_from=0)
     out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01)
     assert max(pose_difference(out[f].pose, truth[k])[0] for k, f in enumerate(ids[1:-1], start=1)) < 1e-4
+
+
+def test_an_end_frame_off_in_one_chain_alone_is_flagged_or_right():
+    # the forward chain 15 deg off at the first inner frame only (back on the object from the second): with the end
+    # frames repeated in the gaps' running median this shows as a loss, the seam lands after it, and frame 1 takes
+    # the forward chain's pose; its doubt must say so (measured before: 15 deg off, disagreement 0, no flag)
+    truth = _truth(20)
+    ids = [f"{k:07d}" for k in range(len(truth))]
+    off = _block(Rotation.from_euler("x", 15, degrees=True))
+    forward = {f: FrameResult(T @ off if k == 1 else T, True, {"fitness": 0.9}) for k, (f, T) in enumerate(zip(ids, truth))}
+    backward = {f: FrameResult(T, True, {"fitness": 0.9}) for f, T in zip(ids, truth)}
+    for fw, bw, end in ((forward, backward, ids[1]), ({f: backward[f] for f in ids}, {f: FrameResult(truth[k] @ off if k == 18 else truth[k], True, {"fitness": 0.9}) for k, f in enumerate(ids)}, ids[18])):
+        out = blend_chains(ids, fw, bw, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1]))
+        k = ids.index(end)
+        error = pose_difference(out[end].pose, truth[k])[0]
+        assert error < 1.0 or flag_reasons(out[end].figures, TrackingConfig()), (end, error, out[end].figures)
+
+
+def test_manual_frames_side_by_side_or_a_chain_failed_throughout_do_not_crash():
+    truth = _truth(2)
+    ids, forward, backward = _chains(truth, lost_after=5, found_from=0)
+    assert blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1])) == {}
+    truth = _truth(8)
+    ids, forward, backward = _chains(truth, lost_after=8, found_from=0)
+    failed = {f: FrameResult(r.pose, False, {"error": "registration failed"}) for f, r in backward.items()}
+    out = blend_chains(ids, forward, failed, symmetric=False, max_deg=5.0, max_m=0.01, anchors=(truth[0], truth[-1]))
+    assert all(pose_difference(out[f].pose, truth[k])[0] < 1e-3 for k, f in enumerate(ids[1:-1], start=1))
 
 
 def test_frames_both_chains_jumped_on_their_way_to_are_flagged_and_keep_their_pose():

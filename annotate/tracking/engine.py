@@ -207,7 +207,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # 4: joint refinement against the model of all frames
     chained = {f: r.pose for f, r in results.items()}
     results = coarse_round(tracker, results, anchors, steps)
-    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m))
+    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors)
     if config.smoothing:

@@ -78,8 +78,8 @@ def pose_reasons(figures: dict, config) -> list[str]:
     if figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m:
         reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
     if figures.get("chains_jumped_deg", 0.0) > config.max_chain_disagreement_deg or figures.get("chains_jumped_m", 0.0) > config.max_chain_disagreement_m:
-        reasons.append(f"both tracking chains jumped on their way to this frame (by at least {figures['chains_jumped_deg']:.1f} deg / "
-                       f"{figures['chains_jumped_m'] * 1000:.0f} mm)")
+        reasons.append(f"both tracking chains jumped on their way to this frame (by at least {figures.get('chains_jumped_deg', 0.0):.1f} deg / "
+                       f"{figures.get('chains_jumped_m', 0.0) * 1000:.0f} mm)")
     if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
         reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:

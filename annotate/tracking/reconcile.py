@@ -83,12 +83,15 @@ where they still meet):
     # the next (measured: 7-12 deg on a v5 mug); two chains drifting apart (a shallow bowl's slow 3 deg
     # per frame) are what the linear blend is for. A centre offset alone is the anchors' own (a dropped link).
     # A one-frame excursion (a bowl's chain 15 deg off for one frame, back the next) is no loss: the gaps'
-    # running median of 3 sees through it.
+    # running median of 3 sees through it (except at an end frame, see below).
     gapped = [frame_ids.index(f) for f in inner if f in gaps]
     g = np.array([gaps[frame_ids[k]][0] for k in gapped])
-    # the end frames repeated, so that a chain lost on its first step from the anchor shows too
-    padded = np.pad(g, 1, mode="edge")
-    steps = np.abs(np.diff(np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0))) if len(g) >= 3 else np.zeros(0)
+    steps = np.zeros(0)
+    if len(g) >= 3:
+        # the end frames repeated, so that a chain lost between the first two inner frames (or the last two) shows
+        # too; an excursion of an end frame alone then shows as well, and the frame's own doubt covers it (best_switch)
+        padded = np.pad(g, 1, mode="edge")
+        steps = np.abs(np.diff(np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0)))
     # step j lies between gapped frames j and j + 1 (the running median's centres)
     jumps = [gapped[j] for j in np.flatnonzero(steps > max_deg)]
     own_gap: dict[int, tuple[float, float]] | None = None  # set where the path switches at once
@@ -141,6 +144,11 @@ where they still meet):
             elif own_gap is not None and any(min(k, seam - 1) <= j < max(k, seam) for j in jumps):
                 # a path switched at once (between seam - 1 and seam); jump j lies between frames j and j + 1
                 deg, metres = own_gap[k]
+            if (k == 1 and k < seam and 1 in jumps) or (k == n - 1 and k >= seam and n - 2 in jumps):
+                # a jump right next to an end frame on its own side of the seam: the repeated end frames let an excursion
+                # of that frame alone count as a loss, and its chain has no departure of its own to show (that needs
+                # two frames before it), so its chains' raw gap stands
+                deg, metres = max(deg, figures["chain_disagreement_raw_deg"]), max(metres, figures["chain_disagreement_raw_m"])
         figures["chain_disagreement_deg"] = deg
         figures["chain_disagreement_m"] = metres
         if k in jumped and (jumped[k][0] > max_deg or jumped[k][1] > max_m):

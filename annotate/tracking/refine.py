@@ -58,8 +58,13 @@ def refine_all(
     anchors: list[str] = (),
     step: Callable[[], None] | None = None,
     settled: tuple[float, float] | None = None,
+    origin: dict[str, np.ndarray] | None = None,
 ) -> dict[str, FrameResult]:
     """Re-register every frame of ``results`` (in order) to the model of all of them, ``rounds`` times.
+
+    ``origin``: frame -> the chains' pose (4x4) that :func:`far_from_chains` measures the rounds from (default:
+    the poses of ``results``; the engine passes the poses from before :func:`coarse_round`, so that the coarse
+    round's moves and these rounds' do not add up past the limit).
 
     With ``settled`` (deg, m), the rounds stop early once a round moved the frames' poses by less
     than both in the median (the model of the next round would be the same model): a laptop's
@@ -88,7 +93,7 @@ def refine_all(
     pose), while the chains had them within 5 deg; a v5 laptop's 10-20 deg corrections fit better.
     """
     config = tracker.config
-    origin = {f: r.pose for f, r in results.items()}
+    origin = {f: r.pose for f, r in results.items()} if origin is None else {f: origin.get(f, r.pose) for f, r in results.items()}
     for done in range(rounds):
         poses = {k: r.pose for k, r in results.items() if not suspect(r, config)}
         if len(poses) < max(3, len(results) // 4):
