@@ -70,10 +70,13 @@ def test_the_coarse_round_merges_two_stretches_that_each_fit_their_own_handle(sc
 def test_the_coarse_round_turns_down_a_move_beyond_its_step_limits_and_keeps_the_figures(scene):
     _, _, truth = scene
     ids = sorted(truth)
-    far = ids[5]
-    start = {f: FrameResult(truth[f] @ (_spun(8.0) if f == far else np.eye(4)), True, {"fitness": 0.9}) for f in ids}
+    far, near = ids[5], ids[15]
+    turns = {far: 8.0, near: 3.0}
+    start = {f: FrameResult(truth[f] @ _spun(turns.get(f, 0.0)), True, {"fitness": 0.9}) for f in ids}
     out = coarse_round(_tracker(scene), start, [ids[0], ids[-1]])
     assert np.array_equal(out[far].pose, start[far].pose)  # 8 deg > coarse_step_deg: kept, whatever the fit
+    # 3 deg is within the limits: the frame is pulled back towards the others (the round does move frames)
+    assert abs(_spin_errors(truth, {near: out[near]})[0]) < 1.5
     assert all(out[f].figures == {"fitness": 0.9} and out[f].ok for f in ids)
     # a model twice as coarse at the default limits; with the round switched off, nothing moves
     off = coarse_round(_tracker(scene, coarse_voxel_factor=1.0), start, [ids[0], ids[-1]])
