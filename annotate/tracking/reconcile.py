@@ -9,6 +9,9 @@ instead of piling up at one end. Their disagreement is kept as a quality figure.
 
 from __future__ import annotations
 
+from functools import partial
+from typing import NamedTuple
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -95,6 +98,8 @@ where they still meet):
     # step j lies between gapped frames j and j + 1 (the running median's centres)
     jumps = [gapped[j] for j in np.flatnonzero(steps > max_deg)]
     own_gap: dict[int, tuple[float, float]] | None = None  # set where the path switches at once
+    # both chains' departures from constant-velocity motion: the switch and the both-chains-jumped flag read them
+    departures = _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
     if jumps:
         # the frame where the two chains come closest, in units of the thresholds
         k_best = min(gaps, key=lambda g: max(gaps[g][0] / max_deg, gaps[g][1] / max_m))
@@ -103,7 +108,7 @@ where they still meet):
         meet = {frame_ids.index(g) for g, (d, m) in gaps.items() if d <= 2 * max_deg and m <= 2 * max_m}
         if frame_ids.index(k_best) in meet:
             seam = frame_ids.index(k_best)
-            _, _, own_meet = best_switch(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors, at=seam)
+            _, _, own_meet = best_switch(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors, at=seam, departures=departures)
             # the hand-over ramps over the frames around the seam where the chains still meet (at most ``ramp``
             # each side): a ramp reaching a frame where one chain is lost would mix the lost pose in
             lo, hi = seam, seam
@@ -114,9 +119,9 @@ where they still meet):
         else:
             # no frame has both chains on the object: the seam is where the path (forward chain before it,
             # backward chain from it) moves most smoothly, switched at once
-            seam, _, own_gap = best_switch(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
+            seam, _, own_gap = best_switch(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors, departures=departures)
             lo, hi = seam, seam - 1
-    jumped = both_chains_jumped(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
+    jumped = both_chains_jumped(departures)
     out: dict[str, FrameResult] = {}
     for k, frame_id in enumerate(inner, start=1):
         f, b = forward[frame_id], backward[frame_id]
@@ -168,6 +173,7 @@ def best_switch(
     max_m: float,
     anchors: tuple[np.ndarray, np.ndarray] | None = None,
     at: int | None = None,
+    departures: Departures | None = None,
 ) -> tuple[int, tuple[float, float], dict[int, tuple[float, float]]]:
     """The index s (1..n) where the path of the forward chain's poses before s and the backward chain's
     from s on (``aligned``: the backward chain's poses aligned to the forward chain) moves most smoothly,
@@ -184,24 +190,22 @@ def best_switch(
     failed in its chain is not scored (that frame keeps a prediction, and takes the other chain's pose).
     Measured on a v5 laptop (seed 1, frames 35-66): no frame had the two chains within twice the
     thresholds, and the linear blend put the slid forward chain into 25 frames (rotation p90 4.3 deg;
-    with the switch 2.4).
+    with the switch 2.4). ``departures``: the same arguments' :func:`_departure_maxima`, when the caller has it.
     """
     n = len(frame_ids) - 1
-    F, B, ok_f, ok_b, before, after = _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
-
-    def cost(P: np.ndarray, Q: np.ndarray) -> tuple[float, float, float]:
-        return _cost(P, Q, symmetric, max_deg, max_m)
-
-    has = _has
+    if departures is None:
+        departures = _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
+    F, B, ok_f, ok_b, before, after = departures
+    cost = partial(_cost, symmetric=symmetric, max_deg=max_deg, max_m=max_m)
     best, best_score = n, (np.inf, 0.0, 0.0)
     for s in ([at] if at is not None else range(1, n + 1)):
         # across the switch (between s - 1 and s): each side's prediction of the other's pose
         sides = []
-        if has(F, ok_f, s - 1, s - 2) and has(B, ok_b, s):
+        if _has(F, ok_f, s - 1, s - 2) and _has(B, ok_b, s):
             sides.append(cost(predict(F[s - 1], F[s - 2]), B[s]))
-        if has(B, ok_b, s, s + 1) and has(F, ok_f, s - 1):
+        if _has(B, ok_b, s, s + 1) and _has(F, ok_f, s - 1):
             sides.append(cost(predict(B[s], B[s + 1]), F[s - 1]))
-        if not sides and 1 < s < n and has(F, ok_f, s - 1) and has(B, ok_b, s):
+        if not sides and 1 < s < n and _has(F, ok_f, s - 1) and _has(B, ok_b, s):
             sides.append(cost(F[s - 1], B[s]))
         score = max([before[s], after[s]] + sides)
         if score[0] < best_score[0]:
@@ -222,7 +226,18 @@ def _has(chain: dict, ok: dict, *ks: int) -> bool:
     return all(k in chain and ok[k] for k in ks)
 
 
-def _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors):
+class Departures(NamedTuple):
+    """Both chains of one stretch by inner index, and their running maxima of departures (:func:`_departure_maxima`)."""
+
+    F: dict[int, np.ndarray]
+    B: dict[int, np.ndarray]
+    ok_f: dict[int, bool]
+    ok_b: dict[int, bool]
+    before: list[tuple[float, float, float]]
+    after: list[tuple[float, float, float]]
+
+
+def _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors) -> Departures:
     """Both chains' poses by inner index (forward F, backward B aligned to it; with ``anchors``, F[0] and B[n] are
     the anchors' poses), whether each registered, and the running maxima of their departures from constant-velocity
     motion, as (score in units of the thresholds, deg, m): ``before[k]`` the forward chain's worst over frames 1..k-1,
@@ -235,14 +250,10 @@ def _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg,
     if anchors is not None:
         F[0], B[n] = anchors
         ok_f[0] = ok_b[n] = True
-
-    def cost(P: np.ndarray, Q: np.ndarray) -> tuple[float, float, float]:
-        return _cost(P, Q, symmetric, max_deg, max_m)
-
-    has = _has
+    cost = partial(_cost, symmetric=symmetric, max_deg=max_deg, max_m=max_m)
     # departures inside each chain: the forward one predicted from the two frames before, the backward one from the two after
-    inside_f = {k: cost(predict(F[k - 1], F[k - 2]), F[k]) for k in range(2, n) if has(F, ok_f, k, k - 1, k - 2)}
-    inside_b = {k: cost(predict(B[k + 1], B[k + 2]), B[k]) for k in range(1, n - 1) if has(B, ok_b, k, k + 1, k + 2)}
+    inside_f = {k: cost(predict(F[k - 1], F[k - 2]), F[k]) for k in range(2, n) if _has(F, ok_f, k, k - 1, k - 2)}
+    inside_b = {k: cost(predict(B[k + 1], B[k + 2]), B[k]) for k in range(1, n - 1) if _has(B, ok_b, k, k + 1, k + 2)}
     none = (0.0, 0.0, 0.0)
     before = [none] * (n + 1)
     for k in range(1, n + 1):
@@ -250,30 +261,21 @@ def _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg,
     after = [none] * (n + 1)
     for k in range(n - 1, 0, -1):
         after[k] = max(after[k + 1], inside_b.get(k, none))
-    return F, B, ok_f, ok_b, before, after
+    return Departures(F, B, ok_f, ok_b, before, after)
 
 
-def both_chains_jumped(
-    frame_ids: list[str],
-    forward: dict[str, FrameResult],
-    backward: dict[str, FrameResult],
-    aligned: dict[str, np.ndarray],
-    symmetric: bool,
-    max_deg: float,
-    max_m: float,
-    anchors: tuple[np.ndarray, np.ndarray] | None = None,
-) -> dict[int, tuple[float, float]]:
-    """Per inner index whose two chains both registered: the (deg, m) of the smaller of the two chains' worst
-    jumps on their way from their anchors to the frame (the forward chain's between the first anchor and the
-    frame, the backward chain's between the frame and the last anchor), as departures from constant-velocity
-    motion. Where both exceed the thresholds, neither chain vouches for the frame, whatever their gap says:
+def both_chains_jumped(departures: Departures) -> dict[int, tuple[float, float]]:
+    """Per inner index whose two chains both registered (``departures``: one stretch's :func:`_departure_maxima`):
+    the (deg, m) of the smaller of the two chains' worst jumps on their way from their anchors to the frame (the
+    forward chain's between the first anchor and the frame, the backward chain's between the frame and the last
+    anchor), as departures from constant-velocity motion. Where both exceed the thresholds, neither chain vouches for the frame, whatever their gap says:
     measured on the bundled sample (a mug, 3 boxes placed within 1.3 deg), the forward chain jumped 9.7 deg
     about the axis at frame 12 and the backward one 13 deg at frame 28; frames 16-25 came out 10-13 deg off
     with the chains 4-5 deg apart and no flag.
     """
-    n = len(frame_ids) - 1
-    _, _, ok_f, ok_b, before, after = _departure_maxima(frame_ids, forward, backward, aligned, symmetric, max_deg, max_m, anchors)
-    return {k: min(before[k + 1], after[k])[1:] for k in range(1, n) if ok_f[k] and ok_b[k]}
+    n = len(departures.before) - 1
+    before, after = departures.before, departures.after
+    return {k: min(before[k + 1], after[k])[1:] for k in range(1, n) if departures.ok_f[k] and departures.ok_b[k]}
 
 
 def common_correction(tracked: dict[str, np.ndarray], placed: dict[str, np.ndarray], symmetric: bool) -> np.ndarray:
