@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotate.tracking.config import TrackingConfig
-from annotate.tracking.consistency import chain_departures, free_spin_runs, rotation_jumps
+from annotate.tracking.consistency import chain_departures, flagged_gaps, free_spin_runs, rotation_jumps
 from annotate.tracking.quality import flag_reasons
 from annotate.tracking.quality import pose_difference
 from annotate.tracking.reconcile import best_switch, blend_chains, chain_frame_offsets
@@ -474,3 +474,23 @@ def test_frames_beyond_the_seam_are_only_as_good_as_their_chain_back_to_its_anch
     assert all(abs(errors[k] - 8.0) < 1e-4 for k in range(21, 27)) and all(errors[k] < 1e-4 for k in range(27, 30))
     assert all(figures[k]["chain_disagreement_deg"] > 5.0 for k in range(21, 27))  # the seam's own gap: 0
     assert all(figures[k]["chain_disagreement_deg"] < 1.0 for k in range(27, 30))  # no jump between them and frame 30
+
+
+def test_a_frame_with_one_chain_is_judged_against_that_chain_alone():
+    # before the first manual frame one chain ran: a one-pose witness tuple, the distance to it
+    truth = _truth(3)
+    final = {"0": truth[0] @ _block(Rotation.from_euler("y", 12, degrees=True))}
+    departures = chain_departures(final, {"0": (truth[0],)}, symmetric=False)
+    assert abs(departures["0"][0] - 12.0) < 1e-4 and departures["0"][1] < 1e-9
+
+
+def test_short_unflagged_runs_between_flagged_frames_are_found():
+    ids = [f"{k:02d}" for k in range(16)]
+    flagged = {ids[k] for k in (2, 3, 5, 8, 12)}  # gaps: 4 (1 frame), 6-7 (2), 9-11 (3), none before 2 / after 12
+    tracked = set(ids) - {ids[7]}  # 7 is a manual frame: never flagged for its neighbours
+    gaps = flagged_gaps(ids, flagged, set(ids), max_gap=2)
+    assert gaps == {ids[4]: (ids[3], ids[5]), ids[6]: (ids[5], ids[8]), ids[7]: (ids[5], ids[8])}
+    assert flagged_gaps(ids, flagged, tracked, max_gap=2) == {ids[4]: (ids[3], ids[5])}
+    assert set(flagged_gaps(ids, flagged, set(ids), max_gap=3)) == {ids[k] for k in (4, 6, 7, 9, 10, 11)}
+    assert flagged_gaps(ids, flagged, set(ids), max_gap=0) == {}
+    assert flagged_gaps(ids, set(), set(ids), max_gap=2) == {}

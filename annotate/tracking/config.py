@@ -58,6 +58,7 @@ class TrackingConfig:
     colour_spin_correct: bool = True  #: ... and turn such a frame by the spin its colours prefer
     max_free_spin_run: int = 5  #: flag frames in a run of more frames whose geometry leaves the spin free, and in such a run at either end (consistency.free_spin_runs; 0: off)
     max_frame_rotation_deg: float = 20.0  #: a frame turned this far from a neighbour frame (consistency.py)
+    max_flag_gap: int = 2  #: flag tracked frames in a run of at most this many unflagged ones between flagged frames (consistency.flagged_gaps; 0: off)
     max_manual_correction_deg: float = 6.0
     max_manual_correction_m: float = 0.012
     min_points: int = 100
