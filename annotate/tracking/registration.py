@@ -162,6 +162,7 @@ class RegistrationParams:
     iterations: int = 30  #: per stage
     quality_distance: float = 0.004  #: inlier distance for fitness / RMSE
     facing: bool = True  #: point_to_plane: pair a frame point only with a model point whose surface faces the frame's camera (thin slabs; see the module doc)
+    facing_figures: bool = True  #: ... and measure fitness and RMSE on those pairs too (False: on all pairs within quality_distance, as Open3D does)
 
 
 def _evaluate(source: o3d.geometry.PointCloud, target: ModelTarget, transform: np.ndarray, distance: float) -> tuple[float, float]:
@@ -258,7 +259,7 @@ def register(
         else:
             icp_run = icp.point_to_plane if backend == "point_to_plane" else partial(_icp_open3d, backend)
             T, fitness, rmse = icp_run(source, target, init, params)
-            if params.quality_distance == params.fine_distance:
+            if params.quality_distance == params.fine_distance and (params.facing_figures or not params.facing):
                 figures = (fitness, rmse)  # the ICP measured them at the final transform: no second KD-tree
     except RuntimeError as error:  # Open3D raises on degenerate systems (e.g. colored ICP without enough texture)
         return fail(f"registration failed: {' '.join(str(error).split())}")
