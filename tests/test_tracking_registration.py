@@ -255,6 +255,15 @@ def test_facing_pairs_keep_a_slab_seen_from_below_off_its_model_top():
     assert slide_plain == pytest.approx(2 * half, abs=0.001)  # the bottom face pulled onto the model's top
     assert abs(slide_facing) < 1e-4  # no pair across the slab: the walls keep the true pose
     assert pose_difference(facing.transform, init)[0] < 0.05
+    # the figures: on the facing pairs by default, on all pairs within the quality distance with facing_figures off
+    # (Open3D's evaluate_registration, a second implementation); the pose is the same either way
+    every = register(frame, target, init, params=RegistrationParams(facing_figures=False))
+    assert np.allclose(every.transform, facing.transform, atol=1e-12)
+    import open3d as o3d
+    expected = o3d.pipelines.registration.evaluate_registration(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(frame)), target.cloud, RegistrationParams().quality_distance, every.transform)
+    assert every.fitness == pytest.approx(expected.fitness, abs=1e-12) and every.inlier_rmse == pytest.approx(expected.inlier_rmse, abs=1e-12)
+    assert every.fitness >= facing.fitness
 
 
 def test_model_targets_face_the_cameras_that_saw_them():
