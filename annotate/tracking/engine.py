@@ -166,15 +166,15 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     symmetric = annotation.symmetry == "y"
     tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
     placed = {m: annotation.frames[m].matrix for m in anchors}
-    refining = tracker  # the joint refinement pairs only facing surfaces in any case (see below)
+    chaining = tracker  # the chains' tracker; the joint refinement and all after it use ``tracker`` (see step 4)
     if config.registration.facing and not symmetric and _nearly_round(tracker, placed):
         # measured (v5, seeds 0-3): pairing only same-facing surfaces lets a mug's chains lose its spin where the
         # handle is hidden (seed 1: 30 deg, p90 4.2 -> 47 deg), while it helps every other shape
-        tracker = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing=False)))
+        chaining = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing=False)))
         # its refinement's fitness counts all pairs, as its chains' does: counted on the facing pairs alone, a mug
         # held in the hand fell below min_fitness in 14 more frames (report mug, frames 10-23, 1.5-7 deg off),
         # which then left the carving, and the hand space only they see free stayed in the mesh (18 mm taller)
-        refining = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing_figures=False)))
+        tracker = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing_figures=False)))
     position = {f: i for i, f in enumerate(ids)}
     a_idx = [position[m] for m in anchors]
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
@@ -187,8 +187,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     forwards, backwards = [], []
     for a, b in zip(a_idx, a_idx[1:]):
         segment = ids[a : b + 1]
-        forwards.append(run_chain(tracker, segment, placed[ids[a]], steps))
-        backwards.append(run_chain(tracker, segment[::-1], placed[ids[b]], steps))
+        forwards.append(run_chain(chaining, segment, placed[ids[a]], steps))
+        backwards.append(run_chain(chaining, segment[::-1], placed[ids[b]], steps))
     frames_of = chain_frame_offsets(anchors, placed, forwards, backwards, symmetric, (config.manual_rotation_sigma_deg, config.manual_translation_sigma))
     for k, m in enumerate(anchors):
         results[m] = FrameResult(placed[m] @ frames_of[k], True, {})
@@ -206,10 +206,10 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
                 # with that chain as the only witness, no rival was found and 10 frames > 10 deg lost their flag)
                 chain_poses[f] = (forward[f].pose, backward[f].pose)
     if a_idx[0] > 0:
-        chain = run_chain(tracker, ids[a_idx[0] :: -1], results[anchors[0]].pose, steps)
+        chain = run_chain(chaining, ids[a_idx[0] :: -1], results[anchors[0]].pose, steps)
         results.update(chain)
     if a_idx[-1] < len(ids) - 1:
-        chain = run_chain(tracker, ids[a_idx[-1] :], results[anchors[-1]].pose, steps)
+        chain = run_chain(chaining, ids[a_idx[-1] :], results[anchors[-1]].pose, steps)
         results.update(chain)
     results = {f: results[f] for f in ids}
 
@@ -218,8 +218,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # bottom with the outer one and slid along its axis by the bottom's thickness (7-10 mm; v5 seed 0, frames 13-21:
     # 4 -> 11 mm in the refinement). Measured on the v5 mugs (seeds 0-3, 4 manual frames off by up to 3 deg /
     # 5 mm / 8%): median / p90 rotation and median centre 1.24/3.77/1.60, 2.33/4.78/2.43, 1.23/6.09/2.27,
-    # 1.26/3.09/3.21 -> 1.07/1.80/1.52, 1.40/5.02/1.67, 1.20/7.46/2.12, 1.32/1.81/2.68 (deg, deg, mm)
-    tracker = refining
+    # 1.26/3.09/3.21 -> 1.03/1.59/1.32, 1.41/4.78/2.08, 1.19/7.54/2.11, 1.28/2.08/2.88 (deg, deg, mm)
     chained = {f: r.pose for f, r in results.items()}
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
