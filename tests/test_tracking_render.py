@@ -58,9 +58,11 @@ def smooth_poses(frames: int, seed: int, distance: float = 0.6) -> list[np.ndarr
 
 
 def render_sequence(
-    root: Path, mesh: trimesh.Trimesh, frames: int = 30, seed: int = 0, hand: bool = True, noise: float = 0.0005
+    root: Path, mesh: trimesh.Trimesh, frames: int = 30, seed: int = 0, hand: bool = True, noise: float = 0.0005,
+    poses: list[np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
-    """Write ``root/rgb`` and ``root/depth`` (Redwood layout) of ``mesh`` at smooth poses; returns {frame id: 4x4 pose}.
+    """Write ``root/rgb`` and ``root/depth`` (Redwood layout) of ``mesh`` at smooth poses (or ``poses``, 4x4 object
+    to camera, one per frame); returns {frame id: 4x4 pose}.
 
     With ``hand``, a skin-coloured sphere touches the object and jumps to another contact point every
     12 frames (a regrasp). Depth gets Gaussian noise of ``noise`` metres, then mm quantisation.
@@ -76,7 +78,7 @@ def render_sequence(
     vertex_color = 0.3 + 0.6 * (mesh.vertices - mesh.vertices.min(0)) / np.ptp(mesh.vertices, axis=0)
     contacts = mesh.sample(50, seed=seed) if hasattr(mesh, "sample") else mesh.vertices[:50]
     truth = {}
-    for k, pose in enumerate(smooth_poses(frames, seed)):
+    for k, pose in enumerate(smooth_poses(frames, seed) if poses is None else poses):
         scene = o3d.t.geometry.RaycastingScene()
         posed = mesh.copy()
         posed.apply_transform(pose)

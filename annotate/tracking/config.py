@@ -53,6 +53,11 @@ class TrackingConfig:
     max_chain_disagreement_deg: float = 5.0
     max_chain_disagreement_m: float = 0.01
     max_chain_departure_deg: float = 8.0  #: final pose this far from both chains' poses (consistency.py)
+    slide_check: bool = True  #: move a frame along the direction its registration leaves free where its fitness clearly rises (slide.py: a laptop along its hinge)
+    max_slide_ratio: float = 0.075  #: ... only where that direction's information is under this share of the strongest one
+    min_slide_gain: float = 0.02  #: ... and the fitness on a wider crop rises by at least this
+    min_slide_m: float = 0.005  #: ... at a shift of at least this (m)
+    max_slide_m: float = 0.04  #: ... shifts tried up to this far either way, a best one within 5 mm of that end not taken (m; the crop is widened by 3/4 of it)
     colour_spin_check: bool = True  #: objects without symmetry: check a spin the geometry leaves free against the colours (colour_spin.py)
     max_colour_spin_deg: float = 7.0  #: ... and flag a frame whose colours match this far spun clearly better
     colour_spin_correct: bool = True  #: ... and turn such a frame by the spin its colours prefer

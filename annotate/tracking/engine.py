@@ -17,6 +17,9 @@
 4b. smooth: where a frame's registration leaves a direction weak (a mug's spin with its handle
    hidden), the pose is taken from its neighbours by an information-weighted least-squares
    smoothing (smooth.py);
+4c. slide: where the registration leaves one direction of translation free (a laptop seen on its
+   faces slides along its hinge), the frame is moved along it where the fitness on a wider crop
+   clearly rises (slide.py);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
@@ -61,6 +64,7 @@ from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, smooth_refined, trusted_model
+from .slide import shifted, slide_corrections
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
@@ -233,9 +237,13 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     if a_idx[-1] < len(ids) - 1 and a_idx[-1] > 0:
         ends.append(ids[a_idx[-1] - 1 :])
     check_colours = not symmetric and config.colour_spin_check
-    # one model of the trusted frames judges the second chains and the colours
-    trusted = trusted_model(tracker, results, anchors) if ends or check_colours else None
+    # one model of the trusted frames judges the second chains, the slides and the colours
+    trusted = trusted_model(tracker, results, anchors) if ends or check_colours or config.slide_check else None
     results = recheck_single_chains(tracker, results, ends, anchors, trusted)
+    # a flat object slides along its faces unseen by the ICP: the fitness on a wider crop sees it (slide.py)
+    slides = slide_corrections(tracker, results, trusted.target(min_hits_for(trusted, config)), set(anchors)) if trusted is not None else {}
+    results = {f: FrameResult(shifted(r.pose, slides[f]), r.ok, {**r.figures, "slide_m": float(np.linalg.norm(slides[f]))}) if f in slides else r
+               for f, r in results.items()}
     # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
     spins = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else {}
     if config.colour_spin_correct:

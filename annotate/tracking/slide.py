@@ -1,0 +1,133 @@
+"""A slide check along the direction a frame's registration leaves free: a flat object seen on its faces.
+
+Point-to-plane ICP pins a pose down only across the surfaces it sees. A laptop seen from behind is
+two planes: sliding it along its hinge moves every frame point along those planes, and the points
+that then stick out beyond the model's edge are further than the correspondence distance, so they
+drop out of the objective instead of pulling the pose back. Measured on a v5 laptop (seed 1): both
+chains, the joint refinement and the smoothing held frames 42-58 8-29 mm off along the hinge with
+rotation within 1 deg, and ICP started from those poses stayed there even against the true mesh.
+
+What does see the slide is how many of the frame's points lie on the model at all (the fitness),
+counted on a crop a few centimetres wider than the box, so that the part of the object that the slid
+box cut off counts again. For each frame whose registration information leaves one translation
+direction weak (its smallest eigenvalue under ``TrackingConfig.max_slide_ratio`` of its largest), the pose is moved along
+that direction over a grid, and where the fitness rises clearly (``min_slide_gain``) at a shift of at least
+``min_slide_m`` the frame takes the centre of the best shifts, provided that the fitness falls again beyond
+them (a peak, both edges seen: with one edge hidden by the hand every shift past it fits alike).
+
+Measured with ``benchmarks/bench_tracking.py --reconstruct`` on the v5 sequences (seeds 0-3, all six categories,
+4 manual frames off by up to 3 deg / 5 mm / 8 %): 26 frames moved (25 of the laptops, 1 of a mug), 23 of them
+closer to the truth: laptop seed 1, frames 44-58, 12-29 mm -> 4-9 mm (none of them flagged); seed 0, frames 74-84
+(flagged), 18-68 mm -> 1-38 mm; seed 2, frames 0-2, 7-25 mm -> 2-3 mm. Three moved further: laptop seed 1 frame 82
+(flagged), 10 -> 15 mm; laptop seed 2 frame 26, 10 -> 24 mm, where the fitness of the wider crop peaks only 0.024
+above its value 15 mm further out; mug seed 2 frame 51 (flagged, 5.8 deg off), 0.8 -> 5.9 mm. The laptops' median centre errors move little (seed 2: 3.27 -> 3.17 mm): the frames off by 3-4 mm that set them
+are not slid. A search over +-6 cm, or without the peak test, also moved a frame 14 -> 75 mm. Time: about 20 ms
+CPU per laptop frame (most are checked; 800 points of the crop, 62 shifts): bench CPU per frame 119-143 -> 122-155 ms.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .registration import ModelTarget
+from .smooth import registration_information
+from .tracker import FrameResult, Tracker
+
+#: shifts (m) tried along the weak direction, then refined on a finer grid about the best
+COARSE_STEP_M = 0.0025
+FINE_STEP_M = 0.0005
+#: points of the wider crop that the search counts (every k-th beyond): its time stays a few ms per frame
+MAX_SEARCH_POINTS = 800
+#: a found shift must be a peak: the fitness this much further out (m) lies clearly below it too, else only one
+#: edge of the object is seen (the other hidden by the hand) and the best shift is anywhere on a plateau
+BEYOND_M = 0.015
+
+
+def weak_direction(points_obj: np.ndarray, target: ModelTarget, distance: float, sigma: float) -> tuple[np.ndarray, float]:
+    """The object-frame unit direction (3,) in which the point-to-plane information of ``points_obj`` (N, 3) m
+    against ``target`` is weakest (rotation held), and its eigenvalue ratio to the strongest one (0..1)."""
+    info = registration_information(points_obj, target, distance, sigma)[3:, 3:]
+    values, vectors = np.linalg.eigh(info)
+    if not values[2] > 0:
+        return np.zeros(3), 1.0
+    return vectors[:, 0], float(values[0] / values[2])
+
+
+def fitness_along(points_obj: np.ndarray, target: ModelTarget, direction: np.ndarray, shifts: np.ndarray, distance: float) -> np.ndarray:
+    """Per shift s (S,) m: the share of ``points_obj`` (N, 3) within ``distance`` of ``target`` once the object
+    moves by ``s * direction`` (object frame), i.e. its points move by ``-s * direction`` in the object frame."""
+    n = len(points_obj)
+    moved = (points_obj[None, :, :] - shifts[:, None, None] * direction[None, None, :]).reshape(-1, 3)
+    d, _ = target.tree().query(moved, distance_upper_bound=distance)
+    return np.isfinite(d).reshape(len(shifts), n).mean(axis=1)
+
+
+def _plateau_centre(shifts: np.ndarray, fitness: np.ndarray) -> float:
+    """The centre of the run of equal highest fitness that holds the first maximum (a plate fits fully over a
+    range of shifts as wide as the inlier distance: its middle is the best estimate)."""
+    k = int(np.argmax(fitness))
+    top = fitness >= fitness[k] - 1e-12
+    lo, hi = k, k
+    while lo > 0 and top[lo - 1]:
+        lo -= 1
+    while hi < len(top) - 1 and top[hi + 1]:
+        hi += 1
+    return float((shifts[lo] + shifts[hi]) / 2)
+
+
+def best_shift(points_obj: np.ndarray, target: ModelTarget, direction: np.ndarray, max_shift: float, distance: float) -> tuple[float, float, float, float]:
+    """(shift m, fitness there, fitness at 0, fitness ``BEYOND_M`` further out) along ``direction``: the middle of
+    the best shifts on a fine grid about the middle of the best ones on a coarse grid over +-``max_shift``."""
+    coarse = np.arange(-max_shift, max_shift + 1e-9, COARSE_STEP_M)
+    centre = _plateau_centre(coarse, fitness_along(points_obj, target, direction, coarse, distance))
+    fine = centre + np.arange(-2 * COARSE_STEP_M, 2 * COARSE_STEP_M + 1e-9, FINE_STEP_M)
+    fine_fit = fitness_along(points_obj, target, direction, fine, distance)
+    at_zero = float(fitness_along(points_obj, target, direction, np.zeros(1), distance)[0])
+    shift = _plateau_centre(fine, fine_fit)
+    beyond = float(fitness_along(points_obj, target, direction, np.array([shift + np.sign(shift) * BEYOND_M]), distance)[0])
+    return shift, float(fine_fit.max()), at_zero, beyond
+
+
+def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target: ModelTarget, skip: set[str] = frozenset()) -> dict[str, np.ndarray]:
+    """Per frame whose fitness clearly rises when it slides along its weak direction: the object-frame shift (3,) m.
+
+    ``pose @ T(shift)`` (a translation by ``shift`` in the object frame) is the corrected pose. Frames in
+    ``skip`` (the manual ones) and failed frames are left alone.
+    """
+    config = tracker.config
+    if not config.slide_check or len(target) == 0:
+        return {}
+    distance = config.registration.quality_distance
+    out = {}
+    for frame_id, result in results.items():
+        if frame_id in skip or not result.ok:
+            continue
+        pose = result.pose
+        points, _ = tracker.crop(frame_id, pose)
+        if len(points) < config.min_points:
+            continue
+        if config.max_points and len(points) > config.max_points:
+            points = points[:: int(np.ceil(len(points) / config.max_points))]
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        direction, ratio = weak_direction(local, target, 2 * config.voxel_size, config.information_sigma)
+        if ratio > config.max_slide_ratio:
+            continue
+        # a wider crop: the part of the object that a slid box cut off must count again
+        wide, _ = tracker.crop(frame_id, pose, 0.75 * config.max_slide_m)
+        if len(wide) > MAX_SEARCH_POINTS:
+            wide = wide[:: int(np.ceil(len(wide) / MAX_SEARCH_POINTS))]
+        wide_local = (wide - pose[:3, 3]) @ pose[:3, :3]
+        shift, fitness, at_zero, beyond = best_shift(wide_local, target, direction, config.max_slide_m, distance)
+        # a best shift at the end of the range is no peak found, nor one on a plateau that only one edge bounds
+        # (measured: laptop seed 2, frame 26, 10 -> 24 mm off without this test; 14 -> 75 mm with a +-6 cm range)
+        peak = abs(shift) <= config.max_slide_m - 2 * COARSE_STEP_M and fitness - beyond >= config.min_slide_gain / 2
+        if peak and abs(shift) >= config.min_slide_m and fitness - at_zero >= config.min_slide_gain:
+            out[frame_id] = shift * direction
+    return out
+
+
+def shifted(pose: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``pose`` (4x4 object to camera) with the object moved by ``shift`` (3,) m along its own axes."""
+    out = pose.copy()
+    out[:3, 3] = pose[:3, 3] + pose[:3, :3] @ shift
+    return out
