@@ -27,6 +27,7 @@ class TrackingConfig:
     max_refine_step_deg: float = 10.0  #: a joint-refinement round turning a frame further keeps its pose (0: no limit)
     max_refine_step_m: float = 0.02  #: ... and so does one moving it further than this (m; 0: no limit)
     refine_step_fitness_gain: float = 0.05  #: ... unless the turned pose fits the same points by this much better
+    max_suspect_step_deg: float = 15.0  #: a frame still suspect after the recheck, registered once more to the trusted model, turns at most this far (refine.reregister_suspects)
     max_refine_departure_deg: float = 5.0  #: symmetric objects: rounds that together turn a frame's axis this far from the chains' pose
     max_refine_departure_m: float = 0.01  #: ... or move it this far (m) need that better fit too (0: no limit; refine.far_from_chains)
     max_refine_through_gain: float = 0.05  #: symmetric objects: ... and may not leave this much more of the model seen through (0: off)

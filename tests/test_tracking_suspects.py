@@ -1,0 +1,86 @@
+"""Suspect frames (their chains disagreed) registered once more to the model of the trusted frames
+(refine.reregister_suspects), against rendered frames whose true poses are known."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+from test_tracking_render import render_sequence
+
+from annotate.tracking import TrackingConfig
+from annotate.tracking.config import scaled_to
+from annotate.tracking.frames import FrameStore
+from annotate.tracking.quality import pose_difference
+from annotate.tracking.refine import build_model, reregister_suspects
+from annotate.tracking.tracker import FrameResult, Tracker
+from sequences.reader import open_sequence
+
+SUSPECT = {"fitness": 0.9, "chain_disagreement_deg": 20.0, "chain_disagreement_m": 0.002}  # beyond the 5 deg threshold
+TRUSTED = {"fitness": 0.95, "chain_disagreement_deg": 0.5, "chain_disagreement_m": 0.001}
+
+
+def camera_mesh() -> trimesh.Trimesh:
+    """A camera-like body: a 12 x 8 x 6 cm box with a 4 cm lens on its front, off-centre (no symmetry)."""
+    body = trimesh.creation.box(extents=[0.12, 0.08, 0.06])
+    lens = trimesh.creation.cylinder(radius=0.02, height=0.04, sections=24)
+    lens.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    lens.apply_translation([0.025, 0.0, 0.05])
+    mesh = trimesh.util.concatenate([body, lens])
+    mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    return mesh
+
+
+def off(pose: np.ndarray, degrees: float, metres: float, axis=(0.3, 1.0, 0.2)) -> np.ndarray:
+    """``pose`` turned by ``degrees`` about an object-frame axis and moved by ``metres`` along object x."""
+    step = np.eye(4)
+    step[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis) / np.linalg.norm(axis)).as_matrix()
+    step[:3, 3] = [metres, 0.0, 0.0]
+    return pose @ step
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("suspects") / "camera_0001"
+    mesh = camera_mesh()
+    truth = render_sequence(root, mesh, frames=10, seed=3, hand=False)
+    config = scaled_to(TrackingConfig(), mesh.extents)
+    tracker = Tracker(FrameStore(open_sequence(root), config.stride, colors=False), mesh.extents, False, config)
+    ids = sorted(truth)
+    suspects = ids[3:5]
+    model = build_model(tracker, {f: truth[f] for f in ids if f not in suspects}, config.max_global_frames)
+    return tracker, truth, ids, suspects, model
+
+
+def test_suspect_frames_come_back_to_the_trusted_model(scene):
+    tracker, truth, ids, suspects, model = scene
+    results = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
+    for f in suspects:
+        results[f] = FrameResult(off(truth[f], 6.0, 0.004), True, dict(SUSPECT))
+    calm = ids[7]  # off too, but its chains agreed: not this step's business
+    results[calm] = FrameResult(off(truth[calm], 6.0, 0.004), True, dict(TRUSTED))
+    out = reregister_suspects(tracker, results, model)
+    for f in suspects:
+        deg, metres = pose_difference(out[f].pose, truth[f], False)
+        assert deg < 0.5 and metres < 0.001, (f, deg, metres)
+        assert out[f].figures == SUSPECT  # poses only: the chains' figures (and so the flag) stay
+    np.testing.assert_array_equal(out[calm].pose, results[calm].pose)
+    for f in set(ids) - set(suspects) - {calm}:
+        np.testing.assert_array_equal(out[f].pose, truth[f])
+
+
+def test_a_move_beyond_the_step_limit_and_manual_frames_are_kept(scene):
+    tracker, truth, ids, suspects, model = scene
+    results = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
+    for f in suspects:
+        results[f] = FrameResult(off(truth[f], 6.0, 0.0), True, dict(SUSPECT))
+    strict = Tracker(tracker.store, tracker.extents, False, replace(tracker.config, max_suspect_step_deg=3.0))
+    out = reregister_suspects(strict, results, model)
+    for f in suspects:  # the registration would turn them 6 deg: more than 3 allowed
+        np.testing.assert_array_equal(out[f].pose, results[f].pose)
+    out = reregister_suspects(tracker, results, model, skip={suspects[0]})
+    np.testing.assert_array_equal(out[suspects[0]].pose, results[suspects[0]].pose)
+    assert pose_difference(out[suspects[1]].pose, truth[suspects[1]], False)[0] < 0.5
