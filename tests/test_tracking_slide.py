@@ -110,3 +110,37 @@ def test_a_plate_whose_far_edge_is_hidden_gives_no_peak():
     shift, fitness, at_zero, beyond = best_shift(seen, ModelTarget(plate, voxel_size=0.002), np.array([1.0, 0, 0]), 0.04, 0.003)
     assert shift < -SLIDE + 0.003 and fitness == pytest.approx(1.0) and at_zero < 0.95
     assert fitness - beyond < TrackingConfig().min_slide_gain / 2
+
+
+def _walk(count: int) -> dict[str, FrameResult]:
+    """Frames moving 1 cm per frame along camera x, unrotated (so object and camera axes agree)."""
+    out = {}
+    for k in range(count):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.01 * k, 0.0, 0.7]
+        out[f"{k:06d}"] = FrameResult(pose, True, {})
+    return out
+
+
+def test_a_lone_slide_off_the_path_is_refused_and_flagged():
+    from annotate.tracking.quality import flag_reasons
+    from annotate.tracking.slide import against_the_motion
+
+    results = _walk(7)
+    ids = list(results)
+    # frame 2 slides 2 cm along z, off the straight path its neighbours keep
+    assert against_the_motion(results, {ids[2]: np.array([0.0, 0.0, 0.02])}, 0.002) == {ids[2]}
+    # frames 3-5 slid together by 2 cm along x and back onto the path: 4 has both neighbours' support, 3 and 5 come
+    # closer to their midpoints
+    off = {f: r for f, r in results.items()}
+    for f in ids[3:6]:
+        pose = results[f].pose.copy()
+        pose[0, 3] -= 0.02
+        off[f] = FrameResult(pose, True, {})
+    back = {f: np.array([0.02, 0.0, 0.0]) for f in ids[3:6]}
+    assert against_the_motion(off, back, 0.002) == set()
+    # a slide judged by a neighbour whose own pose is in doubt is not judged at all
+    assert against_the_motion(results, {ids[2]: np.array([0.0, 0.0, 0.02])}, 0.002, {ids[1]}) == set()
+    # the refused slide flags the frame
+    reasons = flag_reasons({"slide_rejected_m": 0.02}, TrackingConfig())
+    assert len(reasons) == 1 and "20 mm" in reasons[0]

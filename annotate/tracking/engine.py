@@ -66,7 +66,7 @@ from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, reregister_suspects, smooth_refined, suspect, trusted_model
-from .slide import shifted, slide_corrections
+from .slide import against_the_motion, shifted, slide_corrections
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
 
@@ -250,7 +250,10 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     results = reregister_suspects(tracker, results, trusted, set(placed)) if trusted is not None else results
     # a flat object slides along its faces unseen by the ICP: the fitness on a wider crop sees it (slide.py)
     slides = slide_corrections(tracker, results, trusted.target(min_hits_for(trusted, config)), set(anchors)) if trusted is not None else {}
-    results = {f: FrameResult(shifted(r.pose, slides[f]), r.ok, {**r.figures, "slide_m": float(np.linalg.norm(slides[f]))}) if f in slides else r
+    # ... unless the slide takes the frame off the path of its neighbours: it is then flagged for review instead
+    lone = against_the_motion(results, slides, config.slide_path_tolerance, {f for f, r in results.items() if suspect(r, config)})
+    results = {f: FrameResult(r.pose, r.ok, {**r.figures, "slide_rejected_m": float(np.linalg.norm(slides[f]))}) if f in lone
+               else FrameResult(shifted(r.pose, slides[f]), r.ok, {**r.figures, "slide_m": float(np.linalg.norm(slides[f]))}) if f in slides else r
                for f, r in results.items()}
     # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
     spins = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else {}

@@ -71,6 +71,9 @@ def pose_reasons(figures: dict, config) -> list[str]:
     if large_rejected_step(figures, config):
         reasons.append(f"the joint refinement found a pose {figures['refine_rejected_deg']:.1f} deg and "
                        f"{figures['refine_rejected_m'] * 1000:.0f} mm away that fits nearly as well")
+    if "slide_rejected_m" in figures:
+        reasons.append(f"the fitness rises {figures['slide_rejected_m'] * 1000:.0f} mm along the direction its registration leaves free, "
+                       "off its neighbours' path: slid or not, the pose is unsure")
     if "in_box" in figures and figures["in_box"] < config.min_in_box:
         reasons.append(f"only {figures['in_box']:.0%} of the points near the box are inside it")
     if figures.get("chain_disagreement_deg", 0.0) > config.max_chain_disagreement_deg:
