@@ -16,12 +16,14 @@
    regrasp, freespace.py);
 4b. smooth: where a frame's registration leaves a direction weak (a mug's spin with its handle
    hidden), the pose is taken from its neighbours by an information-weighted least-squares
-   smoothing (smooth.py). Then the frames still suspect (their chains disagreed and no restart cleared them) are registered once more
-   to the model of the trusted final poses, which holds none of their own points (refine.reregister_suspects:
-   a mug's frames 5-9.6 deg off where its chains were 22-38 deg apart came to 0.3-6.6 deg);
+   smoothing (smooth.py). Then the frames still suspect (their chains disagreed and no restart
+   cleared them) are registered once more to the model of the trusted final poses, which holds none
+   of their own points (refine.reregister_suspects: a mug's frames 5-9.6 deg off where its chains
+   were 22-38 deg apart came to 0.3-6.6 deg);
 4c. slide: where the registration leaves one direction of translation free (a laptop seen on its
    faces slides along its hinge), the frame is moved along it where the fitness on a wider crop
-   clearly rises (slide.py);
+   clearly rises (slide.py), unless that takes it off the path of its neighbours (then it is
+   flagged: slide.against_the_motion);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction

@@ -138,9 +138,9 @@ def against_the_motion(results: dict[str, FrameResult], slides: dict[str, np.nda
 
     Measured on the v5 sequences (seeds 0-3, 4 manual frames off by up to 3 deg / 5 mm / 8 %): of the 28 laptop
     slides proposed (seeds 0-2: 7, 15, 6), it refuses one, laptop seed 2 frame 26 (1-based 27), which stays 10 mm
-    off instead of going to 24 mm, and is flagged; laptop seed 1's run of 15 slid frames (12-29 -> 4-9 mm) keeps them all. Judged by every
-    neighbour, it also refused laptop seed 0 frames 75 and 83 (flagged, neighbours 45 mm off), whose slides are
-    right (29 -> 1-2 mm).
+    off instead of going to 24 mm, and is flagged; laptop seed 1's run of 15 slid frames (12-29 -> 4-9 mm) keeps
+    them all. Judged by every neighbour, it also refused laptop seed 0 frames 75 and 83 (flagged, neighbours 45 mm
+    off), whose slides are right (29 -> 1-2 mm).
     """
     order = list(results)
     centre = {f: shifted(r.pose, slides[f])[:3, 3] if f in slides else r.pose[:3, 3] for f, r in results.items()}
