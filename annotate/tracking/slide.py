@@ -140,7 +140,9 @@ def against_the_motion(results: dict[str, FrameResult], slides: dict[str, np.nda
     slides proposed (seeds 0-2: 7, 15, 6), it refuses one, laptop seed 2 frame 26 (1-based 27), which stays 10 mm
     off instead of going to 24 mm, and is flagged; laptop seed 1's run of 15 slid frames (12-29 -> 4-9 mm) keeps
     them all. Judged by every neighbour, it also refused laptop seed 0 frames 75 and 83 (flagged, neighbours 45 mm
-    off), whose slides are right (29 -> 1-2 mm).
+    off), whose slides are right (29 -> 1-2 mm). With 3 manual frames off by up to 5 deg it refuses 9 slides: 7 of
+    them wrong (bottle seed 2 frame 87, unflagged, 24 -> 5 mm, now flagged; laptop frames 9-29 -> 2-8 mm), 2 right
+    (laptop seed 1 frames 55 and 72: 4 -> 7 and 5 -> 25 mm, both flagged now); failing checks 13 of 96 either way.
     """
     order = list(results)
     centre = {f: shifted(r.pose, slides[f])[:3, 3] if f in slides else r.pose[:3, 3] for f, r in results.items()}
