@@ -132,7 +132,7 @@ def test_a_lone_slide_off_the_path_is_refused_and_flagged():
     assert against_the_motion(results, {ids[2]: np.array([0.0, 0.0, 0.02])}, 0.002) == {ids[2]}
     # frames 3-5 slid together by 2 cm along x and back onto the path: 4 has both neighbours' support, 3 and 5 come
     # closer to their midpoints
-    off = {f: r for f, r in results.items()}
+    off = dict(results)
     for f in ids[3:6]:
         pose = results[f].pose.copy()
         pose[0, 3] -= 0.02

@@ -254,9 +254,13 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     slides = slide_corrections(tracker, results, trusted.target(min_hits_for(trusted, config)), set(anchors)) if trusted is not None else {}
     # ... unless the slide takes the frame off the path of its neighbours: it is then flagged for review instead
     lone = against_the_motion(results, slides, config.slide_path_tolerance, {f for f, r in results.items() if suspect(r, config)})
-    results = {f: FrameResult(r.pose, r.ok, {**r.figures, "slide_rejected_m": float(np.linalg.norm(slides[f]))}) if f in lone
-               else FrameResult(shifted(r.pose, slides[f]), r.ok, {**r.figures, "slide_m": float(np.linalg.norm(slides[f]))}) if f in slides else r
-               for f, r in results.items()}
+    results = dict(results)
+    for frame_id, shift in slides.items():
+        r, metres = results[frame_id], float(np.linalg.norm(shift))
+        if frame_id in lone:
+            results[frame_id] = FrameResult(r.pose, r.ok, {**r.figures, "slide_rejected_m": metres})
+        else:
+            results[frame_id] = FrameResult(shifted(r.pose, shift), r.ok, {**r.figures, "slide_m": metres})
     # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
     spins = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else {}
     if config.colour_spin_correct:
