@@ -20,6 +20,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-facing", dest="facing", action="store_false",
                         help="with --track: let a frame's points pair with model surfaces facing away from its camera too (by "
                              "default they do not: the two sides of a thin slab, such as a laptop's base, are told apart)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="with --track: processes for the independent work (the chains, the refinement's registrations); "
+                             "default: the cores available, at most 4; the poses are the same for any N")
     return parser
 
 
@@ -30,6 +33,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--placement-sigma applies to --track only")
     if not args.facing and not args.track:
         parser.error("--no-facing applies to --track only")
+    if args.workers is not None and not args.track:
+        parser.error("--workers applies to --track only")
+    if args.workers is not None and args.workers < 1:
+        parser.error(f"--workers must be at least 1, got {args.workers}")
     if args.track:
         from .track_command import run_track  # owned by the tracking work (issue 5)
 

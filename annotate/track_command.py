@@ -42,6 +42,8 @@ def run_track(args) -> int:
     if sigma is not None:
         config.manual_rotation_sigma_deg, config.manual_translation_sigma = sigma[0], sigma[1] / 1000
     config.registration.facing = bool(getattr(args, "facing", True))
+    if getattr(args, "workers", None) is not None:
+        config.workers = int(args.workers)
     bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True)
 
     def progress(done: int, total: int) -> None:

@@ -172,7 +172,7 @@ def test_annotate_track_command_writes_the_document(tmp_path, scene):
                           frames={f: annotation.frames[f] for f in MANUAL[:2]}, extra={"annotator": "test"})
     path = tmp_path / "boxes.yaml"
     save_annotation(document, path, backup=False)
-    run = _annotate(str(copy), "--track", "--annotation", str(path))
+    run = _annotate(str(copy), "--track", "--annotation", str(path), "--workers", "2")
     assert run.returncode == 0, run.stderr[-800:]
     assert "tracked 14 frames" in run.stdout
     out = load_annotation(path)
@@ -222,7 +222,7 @@ def test_the_facing_test_is_left_out_of_the_chains_of_a_nearly_round_object_but_
     from annotate.tracking.tracker import Tracker
 
     root, truth, annotation = scene
-    config = TrackingConfig()
+    config = TrackingConfig(workers=1)  # the spies below see this process only
     config = replace(config, registration=replace(config.registration, facing=True))
     tracker = Tracker(FrameStore(open_sequence(root)), annotation.extents, False, config)
     assert engine._nearly_round(tracker, {f: annotation.frames[f].matrix for f in MANUAL})  # the mug's body
@@ -242,6 +242,13 @@ def test_the_facing_test_is_left_out_of_the_chains_of_a_nearly_round_object_but_
 def test_no_facing_applies_to_track_only():
     run = _annotate("--no-facing")
     assert run.returncode == 2 and "--no-facing applies to --track only" in run.stderr
+
+
+def test_workers_applies_to_track_only_and_must_be_positive():
+    run = _annotate("--workers", "2")
+    assert run.returncode == 2 and "--workers applies to --track only" in run.stderr
+    run = _annotate("--track", "--workers", "0")
+    assert run.returncode == 2 and "--workers must be at least 1, got 0" in run.stderr
 
 
 def test_a_refinement_round_may_not_carry_a_frame_far_without_a_better_fit():
@@ -287,3 +294,16 @@ def test_a_pose_that_puts_the_model_where_the_frame_sees_through_it_is_measured(
     on_wall, before_wall = np.eye(4), np.eye(4)
     on_wall[2, 3], before_wall[2, 3] = 1.0, 0.95  # the patch on the wall, and 5 cm before it (the wall seen behind)
     assert _through_pair(tracker, "0", on_wall, before_wall, target) == (0.0, 1.0)
+
+
+@pytest.mark.slow
+def test_worker_processes_give_the_same_document_as_one_process(scene, tracked):
+    root, _, annotation = scene
+    progress = []
+    alone = track_sequence(open_sequence(root), annotation, config=TrackingConfig(workers=1))
+    several = track_sequence(open_sequence(root), annotation, config=TrackingConfig(workers=2), progress=lambda d, t: progress.append((d, t)))
+    for frame_id, pose in alone.frames.items():
+        assert np.array_equal(pose.matrix, several.frames[frame_id].matrix), frame_id
+        assert pose.extra == several.frames[frame_id].extra, frame_id
+    done = [d for d, _ in progress]
+    assert done == sorted(done) and progress[-1][0] == progress[-1][1]

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .registration import BACKENDS, RegistrationParams
+from .workers import resolve
 
 
 @dataclass
@@ -46,6 +47,7 @@ class TrackingConfig:
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
     threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
+    workers: int = 0  #: processes for independent work (workers.py; 0: the cores available, at most 4; 1: none): the same results for any count
     update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)
     # review thresholds: a frame outside any of them gets flagged: true and a flag_reason
     min_fitness: float = 0.5
@@ -75,6 +77,11 @@ class TrackingConfig:
             raise ValueError(f"unknown registration backend {self.backend!r}; one of {', '.join(BACKENDS)}")
         if not self.voxel_size > 0:
             raise ValueError("voxel_size must be positive")
+
+
+    def worker_count(self) -> int:
+        """Processes for independent work: one unless Open3D runs on one thread (a thread pool does not survive a fork)."""
+        return resolve(self.workers) if self.threads == 1 else 1
 
 
 def scaled_to(config: TrackingConfig, extents) -> TrackingConfig:

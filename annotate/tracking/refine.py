@@ -24,6 +24,7 @@ from .quality import pose_difference
 from .reconcile import common_correction, interpolate, pose_log
 from .symmetry import closest_about_y
 from .tracker import FrameResult, Tracker
+from .workers import ordered_map
 
 
 def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int, always: list[str] = (), free_space: bool = True) -> ObjectModel:
@@ -100,17 +101,20 @@ def refine_all(
             poses = best_agreeing(results, max(3, len(results) // 4), config)
         model = build_model(tracker, poses, config.max_global_frames, [a for a in anchors if a in poses])
         hits = min_hits_for(model, config)
+        model.target(hits)  # built once here, not in every worker
+        # every frame from its own pose: independent registrations, on several processes where there are cores
+        own = dict(zip(results, ordered_map(lambda f: tracker.register(f, results[f].pose, model, hits), list(results), config.worker_count(), step and (lambda *_: step()))))
         updated: dict[str, FrameResult] = {}
         last: list[np.ndarray] = []
         for frame_id, previous in results.items():
-            starts = [previous.pose]
+            candidates = [own[frame_id]]
             if suspect(previous, config) and last and done == 0:
                 # the chains' blend may be the lost one: also start from the last refined pose and its
                 # constant-velocity prediction, and keep the start that fits the model best
-                starts = [last[-1]] + ([predict(last[-1], last[-2])] if len(last) > 1 else []) + starts
+                starts = [last[-1]] + ([predict(last[-1], last[-2])] if len(last) > 1 else [])
+                candidates = [tracker.register(frame_id, init, model, hits) for init in starts] + candidates
             result = None
-            for init in starts:
-                candidate = tracker.register(frame_id, init, model, hits)
+            for candidate in candidates:
                 if result is None or (candidate.ok and (not result.ok or candidate.figures.get("fitness", 0.0) > result.figures.get("fitness", 0.0))):
                     result = candidate
             if result.ok:
@@ -141,8 +145,6 @@ def refine_all(
                 figures = dict(previous.figures)
                 figures.setdefault("error", result.figures.get("error", "registration failed"))
                 updated[frame_id] = FrameResult(previous.pose, False, figures)
-            if step is not None:
-                step()
         moved = np.array([pose_difference(results[f].pose, r.pose, tracker.symmetric) for f, r in updated.items() if r.ok])
         results = updated
         if settled is not None and done + 1 < rounds and len(moved) and np.median(moved[:, 0]) < settled[0] and np.median(moved[:, 1]) < settled[1]:
@@ -295,26 +297,34 @@ def recheck_disagreements(
     if model is None:
         return results  # too few trusted frames for a model to judge by
     hits = min_hits_for(model, config)
+    model.target(hits)  # built once here, not in every worker
     out = dict(results)
     order = list(results)
-    for frame_id in todo:
+
+    def rivals(frame_id: str) -> tuple[float, float] | None:
+        """The largest difference (deg, m) of a rival pose from the frame's final pose; None: no verdict."""
         final = results[frame_id]
         if not _smooth_with_neighbours(results, order, frame_id, tracker.symmetric, config):
-            continue  # a jump away from both neighbours: the refined pose itself slid off (a model minimum elsewhere)
+            return None  # a jump away from both neighbours: the refined pose itself slid off (a model minimum elsewhere)
         own = tracker.register(frame_id, final.pose, model, hits)  # the final pose's fit on this same model
         if not own.ok:
-            continue
+            return None
         worst_deg, worst_m = 0.0, 0.0
         for start in chain_poses[frame_id]:
             restart = tracker.register(frame_id, start, model, hits)
             if not restart.ok:
-                worst_deg = worst_m = float("inf")
-                break
+                return float("inf"), float("inf")
             # a start that settles elsewhere but fits clearly worse is a local minimum, not a rival pose
             if restart.figures["fitness"] < own.figures["fitness"] - RIVAL_FITNESS_MARGIN:
                 continue
             deg, metres = pose_difference(own.pose, restart.pose, tracker.symmetric)
             worst_deg, worst_m = max(worst_deg, deg), max(worst_m, metres)
+        return worst_deg, worst_m
+
+    for frame_id, worst in zip(todo, ordered_map(rivals, todo, config.worker_count())):
+        if worst is None:
+            continue
+        final, (worst_deg, worst_m) = results[frame_id], worst
         if worst_deg <= config.max_chain_disagreement_deg and worst_m <= config.max_chain_disagreement_m:
             figures = dict(final.figures)
             figures["chain_disagreement_before_deg"] = figures.get("chain_disagreement_deg", 0.0)
@@ -349,9 +359,9 @@ def reregister_suspects(tracker: Tracker, results: dict[str, FrameResult], model
     hits = min_hits_for(model, config)
     limits = replace(config, max_refine_step_deg=config.max_suspect_step_deg)
     out = dict(results)
-    for frame_id in todo:
+    model.target(hits)  # built once here, not in every worker
+    for frame_id, again in zip(todo, ordered_map(lambda f: tracker.register(f, results[f].pose, model, hits), todo, config.worker_count())):
         before = results[frame_id]
-        again = tracker.register(frame_id, before.pose, model, hits)
         if again.ok and not large_step(*pose_difference(before.pose, again.pose, tracker.symmetric), limits):
             out[frame_id] = FrameResult(again.pose, True, before.figures)
     return out

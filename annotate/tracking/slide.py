@@ -36,6 +36,7 @@ import numpy as np
 from .registration import ModelTarget
 from .smooth import registration_information
 from .tracker import FrameResult, Tracker
+from .workers import ordered_map
 
 #: shifts (m) tried along the weak direction, then refined on a finer grid about the best
 COARSE_STEP_M = 0.0025
@@ -102,20 +103,20 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
     if not config.slide_check or len(target) == 0:
         return {}
     distance = config.registration.quality_distance
-    out = {}
-    for frame_id, result in results.items():
-        if frame_id in skip or not result.ok:
-            continue
-        pose = result.pose
+    target.tree()  # built once here, not in every worker
+
+    def slide(frame_id: str) -> np.ndarray | None:
+        """The frame's object-frame shift (3,) m, or None."""
+        pose = results[frame_id].pose
         points, _ = tracker.crop(frame_id, pose)
         if len(points) < config.min_points:
-            continue
+            return None
         if config.max_points and len(points) > config.max_points:
             points = points[:: int(np.ceil(len(points) / config.max_points))]
         local = (points - pose[:3, 3]) @ pose[:3, :3]
         direction, ratio = weak_direction(local, target, 2 * config.voxel_size, config.information_sigma)
         if ratio > config.max_slide_ratio:
-            continue
+            return None
         # a wider crop: the part of the object that a slid box cut off must count again
         wide, _ = tracker.crop(frame_id, pose, 0.75 * config.max_slide_m)
         if len(wide) > MAX_SEARCH_POINTS:
@@ -126,8 +127,11 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
         # seed 2 frame 15 went 14 -> 75 mm), nor one on a plateau that only one edge bounds (the far edge hidden)
         peak = abs(shift) <= config.max_slide_m - 2 * COARSE_STEP_M and fitness - beyond >= config.min_slide_gain / 2
         if peak and abs(shift) >= config.min_slide_m and fitness - at_zero >= config.min_slide_gain:
-            out[frame_id] = shift * direction
-    return out
+            return shift * direction
+        return None
+
+    todo = [f for f, r in results.items() if f not in skip and r.ok]
+    return {f: shift for f, shift in zip(todo, ordered_map(slide, todo, config.worker_count())) if shift is not None}
 
 
 def against_the_motion(results: dict[str, FrameResult], slides: dict[str, np.ndarray], tolerance: float, doubtful: set[str] = frozenset()) -> set[str]:
