@@ -297,11 +297,22 @@ def test_a_pose_that_puts_the_model_where_the_frame_sees_through_it_is_measured(
 
 
 @pytest.mark.slow
-def test_worker_processes_give_the_same_document_as_one_process(scene, tracked):
+def test_worker_processes_give_the_same_document_as_one_process(scene, tracked, monkeypatch):
+    import os
+
+    import annotate.tracking.engine as engine
+
     root, _, annotation = scene
     progress = []
     alone = track_sequence(open_sequence(root), annotation, config=TrackingConfig(workers=1))
+    short = track_sequence(open_sequence(root), annotation, config=TrackingConfig(workers=2))  # 24 frames: too few to fork for
+    monkeypatch.setattr(engine, "MIN_FRAMES_FOR_WORKERS", 0)
+    before = os.times()
     several = track_sequence(open_sequence(root), annotation, config=TrackingConfig(workers=2), progress=lambda d, t: progress.append((d, t)))
+    after = os.times()
+    assert after.children_user + after.children_system > before.children_user + before.children_system  # workers did run
+    for frame_id, pose in short.frames.items():
+        assert np.array_equal(pose.matrix, several.frames[frame_id].matrix), frame_id
     for frame_id, pose in alone.frames.items():
         assert np.array_equal(pose.matrix, several.frames[frame_id].matrix), frame_id
         assert pose.extra == several.frames[frame_id].extra, frame_id

@@ -84,3 +84,32 @@ def test_a_move_beyond_the_step_limit_and_manual_frames_are_kept(scene):
     out = reregister_suspects(tracker, results, model, skip={suspects[0]})
     np.testing.assert_array_equal(out[suspects[0]].pose, results[suspects[0]].pose)
     assert pose_difference(out[suspects[1]].pose, truth[suspects[1]], False)[0] < 0.5
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="worker processes are forked, on Linux only")
+def test_the_suspect_steps_give_the_same_poses_on_worker_processes(scene):
+    """The recheck, the re-registration and a refinement round's restarts of suspect frames, on one process and on two."""
+    import os
+
+    from annotate.tracking.refine import recheck_disagreements, refine_all
+    from annotate.tracking.registration import open3d_threads
+
+    tracker, truth, ids, suspects, model = scene
+    results = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
+    for f in suspects:
+        results[f] = FrameResult(off(truth[f], 6.0, 0.004), True, dict(SUSPECT))
+    chains = {f: (off(truth[f], 6.0, 0.004), off(truth[f], -4.0, -0.003)) for f in suspects}
+    out = {}
+    for count in (1, 2):
+        counted = Tracker(tracker.store, tracker.extents, False, replace(tracker.config, workers=count))
+        before = os.times()
+        with open3d_threads(1):  # as the engine runs them: Open3D's reductions on several threads sum in a varying order
+            out[count] = (reregister_suspects(counted, results, model), recheck_disagreements(counted, results, chains), refine_all(counted, results, 1))
+        after = os.times()
+        ran_elsewhere = after.children_user + after.children_system > before.children_user + before.children_system
+        assert ran_elsewhere == (count > 1)
+    for k, (one, two) in enumerate(zip(out[1], out[2])):
+        for f in ids:
+            assert np.array_equal(one[f].pose, two[f].pose), (k, f)
+            assert one[f].figures == two[f].figures
+    assert any(not np.array_equal(out[1][2][f].pose, results[f].pose) for f in suspects)  # the round moved them

@@ -43,12 +43,22 @@ def test_an_error_in_a_worker_reaches_the_caller():
     assert workers._job is None
     assert workers.ordered_map(lambda k: k + 1, range(3), 2) == [1, 2, 3]  # and the next map runs
 
+    def missing_on_two(k: int) -> int:
+        if k == 2:
+            raise FileNotFoundError("frame 2 is gone")
+        return k
+
+    seen = []
+    with pytest.raises(FileNotFoundError, match="frame 2 is gone"):
+        workers.ordered_map(missing_on_two, range(6), 2, done=lambda item, result: seen.append(item))
+    assert seen == [0, 1]  # an OSError of the function's own is not taken for a refused fork: nothing ran twice
+
 
 @needs_fork
 def test_a_map_inside_a_worker_runs_as_a_loop():
-    inner = workers.ordered_map(lambda k: workers.ordered_map(lambda j: (j, os.getpid()), range(3), 2), range(2), 2)
-    for rows in inner:
-        assert len({pid for _, pid in rows}) == 1  # one process: the worker itself
+    outer = workers.ordered_map(lambda k: (os.getpid(), workers.ordered_map(lambda j: os.getpid(), range(3), 2)), range(2), 2)
+    for pid, inner in outer:
+        assert pid != os.getpid() and inner == [pid] * 3  # in the worker itself
 
 
 def test_the_worker_count():
@@ -56,3 +66,84 @@ def test_the_worker_count():
     assert 1 <= workers.resolve(0) <= 4
     assert TrackingConfig(workers=3).worker_count() == 3
     assert TrackingConfig(workers=3, threads=0).worker_count() == 1  # Open3D's thread pool does not survive a fork
+    with pytest.raises(ValueError, match="workers must be 0"):
+        TrackingConfig(workers=-1)
+
+
+@needs_fork
+def test_a_worker_that_dies_raises_instead_of_hanging():
+    def dies_on_three(k: int) -> int:
+        if k == 3:
+            os._exit(1)  # as the out-of-memory killer would end it
+        return k
+
+    with pytest.raises(workers.WorkerDied, match="--workers 1"):
+        workers.ordered_map(dies_on_three, range(8), 2)
+    assert workers._job is None
+
+
+@needs_fork
+@pytest.mark.parametrize("refused", [1, 2])  # the first fork, or the second after one worker started
+def test_no_fork_possible_runs_the_map_here_and_leaves_no_worker(monkeypatch, refused):
+    import multiprocessing
+
+    fork = multiprocessing.get_context("fork")
+
+    class Refusing:
+        made = 0
+
+        def Process(self, *args, **kwargs):  # noqa: N802 (multiprocessing's name)
+            Refusing.made += 1
+            if Refusing.made >= refused:
+                raise OSError(12, "Cannot allocate memory")
+            return fork.Process(*args, **kwargs)
+
+        def __getattr__(self, name):
+            return getattr(fork, name)
+
+    monkeypatch.setattr(workers.multiprocessing, "get_context", lambda method: Refusing())
+    out = workers.ordered_map(lambda k: (k, os.getpid()), range(4), 2)
+    assert out == [(k, os.getpid()) for k in range(4)]
+    assert multiprocessing.active_children() == []  # a worker left waiting would hold the interpreter at exit
+
+
+@needs_fork
+def test_an_error_in_the_progress_callback_stops_the_map_at_once():
+    import multiprocessing
+    import time
+
+    def stop(item, result):
+        raise KeyboardInterrupt  # the user pressed Ctrl-C while the bar updated
+
+    start = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        workers.ordered_map(lambda k: time.sleep(0.1), range(40), 2, done=stop)
+    assert time.perf_counter() - start < 2.0  # not after all 40 items (2 s on two workers)
+    assert multiprocessing.active_children() == []
+
+
+@needs_fork
+def test_a_map_started_on_another_thread_meanwhile_runs_there_as_a_loop():
+    import threading
+
+    started, release = threading.Event(), threading.Event()
+    inner: list = []
+
+    def slow(k: int) -> int:
+        return k
+
+    def first_done(item, result):
+        if item == 0:
+            started.set()
+            release.wait(10)  # hold the first map open while another thread maps
+
+    first: list = []
+    thread = threading.Thread(target=lambda: first.extend(workers.ordered_map(slow, range(4), 2, done=first_done)))
+    thread.start()
+    assert started.wait(30)
+    inner.extend(workers.ordered_map(lambda k: (k, os.getpid()), range(3), 2))
+    release.set()
+    thread.join(30)
+    assert not thread.is_alive() and first == [0, 1, 2, 3]
+    assert inner == [(k, os.getpid()) for k in range(3)]  # here, not in the first map's workers
+    assert workers.ordered_map(lambda k: os.getpid(), range(2), 2)[0] != os.getpid()  # and the lock is free again

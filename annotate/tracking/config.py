@@ -75,6 +75,8 @@ class TrackingConfig:
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown registration backend {self.backend!r}; one of {', '.join(BACKENDS)}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be 0 (the cores available) or more, got {self.workers}")
         if not self.voxel_size > 0:
             raise ValueError("voxel_size must be positive")
 

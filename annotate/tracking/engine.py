@@ -48,7 +48,8 @@ reached it, and a frame or two left unflagged between flagged frames is flagged 
 Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures), and the independent
 work (the chains, every frame's registration in a refinement round, the rechecks, the slides) on
 ``config.workers`` forked processes (workers.py): the same poses for any count. Measured on 2 cores (v5, seeds
-0-3): a laptop 164-175 -> 101-123 ms per frame, the other objects 32-67.
+0-3): a laptop 164-175 -> 96-126 ms per frame, the other objects 27-65 (ranges under ``MIN_FRAMES_FOR_WORKERS``
+frames run on one process).
 """
 
 from __future__ import annotations
@@ -77,6 +78,12 @@ from .tracker import FrameResult, Tracker
 from .workers import ordered_map
 
 Progress = Callable[[int, int], None]
+
+
+#: Shorter ranges track on one process: forking and gathering cost about 30 ms per parallel step, which a short
+#: range does not win back (measured on 2 cores, v5 seed 1, one process -> two: mug 12 frames 0.53 -> 0.58-0.63 s,
+#: 24 frames 0.95-0.99 -> 0.97-1.14 s, 48 frames 2.39-2.56 -> 2.14-2.24 s; laptop 24 frames 2.96-3.14 -> 2.45-2.55 s).
+MIN_FRAMES_FOR_WORKERS = 40
 
 
 class _Steps:
@@ -189,6 +196,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     anchors = _anchors(annotation, ids)
     if not anchors:
         raise ValueError("no frame in the range has a box: place a box in at least one frame first")
+    if len(ids) < MIN_FRAMES_FOR_WORKERS:
+        config = replace(config, workers=1)
     symmetric = annotation.symmetry == "y"
     tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
     placed = {m: annotation.frames[m].matrix for m in anchors}
@@ -211,6 +220,11 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     results: dict[str, FrameResult] = {}
     chain_poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # both chains' poses, anchor 0's object frame
     workers = config.worker_count()
+    if workers > 1:
+        # every frame read here once, before the first fork: the workers inherit the images (and any read error)
+        # instead of each reading them again
+        for frame_id in ids:
+            tracker.store.image(frame_id)
     # the chains are independent of each other: each on its own process where there are several cores
     segments = [ids[a : b + 1] for a, b in zip(a_idx, a_idx[1:])]
     chains = _run_chains(chaining, [job for s in segments for job in ((s, placed[s[0]]), (s[::-1], placed[s[-1]]))], workers, steps)

@@ -103,7 +103,7 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
     if not config.slide_check or len(target) == 0:
         return {}
     distance = config.registration.quality_distance
-    target.tree()  # built once here, not in every worker
+    target.tree()  # built once here, not in every worker (the normals are built with the target)
 
     def slide(frame_id: str) -> np.ndarray | None:
         """The frame's object-frame shift (3,) m, or None."""

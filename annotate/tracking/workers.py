@@ -4,18 +4,26 @@ Tracking's per-frame work is numpy on a few thousand points at a time, which hol
 measured 15-25 % more CPU for a 12 % shorter laptop run and slower small objects. Forked processes share
 the parent's state as it is at the fork (frames read, models and their KD-trees built) without pickling
 it; only the items' indices go out and the results (poses, figures) come back. Each item runs the same
-code on the same inputs as in a loop, so the results are the same bit for bit whatever the count
-(tests/test_tracking_workers.py, and bench_tracking's pose dumps compared frame by frame).
+code on the same inputs as in a loop, so the results are the same bit for bit whatever the count (measured:
+bench_tracking's pose dumps of the v5 sequences, seeds 0-3, with 4 manual frames and with 3 off by up to 5 deg,
+48 runs, 0 frames changed; tests/test_tracking_workers.py, test_tracking_suspects.py, test_tracking_engine.py).
+That needs Open3D on one thread in every process: on two, its normal equations sum in a varying order (one
+frame registered 30 times from the same start gave 25 different last bits).
 
 Forking needs Linux (elsewhere, or with one worker, the map is a plain loop), and Open3D on one thread in the
-parent (the engine's default, ``TrackingConfig.threads``): an OpenMP thread pool does not survive a fork.
+parent (the engine's default, ``TrackingConfig.threads``; ``TrackingConfig.worker_count``): the workers inherit
+the setting, and OpenMP does not promise that a thread pool survives a fork (Open3D's did on this machine).
 """
 
 from __future__ import annotations
 
 import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 import os
 import sys
+import threading
+import warnings
 from typing import Callable, Iterable, Sequence, TypeVar
 
 Item = TypeVar("Item")
@@ -23,6 +31,8 @@ Result = TypeVar("Result")
 
 #: The function and items of the map under way, set before the fork: the workers inherit them.
 _job: tuple[Callable, Sequence] | None = None
+#: Held while a map's workers run.
+_forking = threading.Lock()
 #: True inside a worker: a map there runs as a loop (a pool's workers cannot have children).
 _in_worker = False
 
@@ -50,31 +60,75 @@ def _call(index: int):
     return function(items[index])
 
 
+class WorkerDied(RuntimeError):
+    """A worker process ended without a result (killed, say by the out-of-memory killer, or crashed)."""
+
+
 def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], workers: int = 1, done: Callable[[Item, Result], None] | None = None) -> list[Result]:
     """``[function(item) for item in items]``, on up to ``workers`` forked processes where there are several items.
 
     ``function`` may be a closure over any state: the workers inherit it. Its result must pickle. ``done(item,
     result)`` is called in this process, in item order, as results arrive (progress). An exception raised by
-    ``function`` is raised here.
+    ``function`` or ``done`` is raised here (the items not yet started are dropped); a worker that dies raises
+    :class:`WorkerDied` (no hang); where no process can be forked (out of memory or process slots), the map runs
+    as a loop here.
     """
     global _job
     items = list(items)
     count = min(int(workers), len(items))
-    if count <= 1 or _in_worker or not sys.platform.startswith("linux") or _job is not None:
-        out = []
-        for item in items:
-            out.append(function(item))
-            if done is not None:
-                done(item, out[-1])
-        return out
+    # one map at a time forks (the workers read _job): one started meanwhile on another thread runs as a loop
+    if count <= 1 or _in_worker or not sys.platform.startswith("linux") or not _forking.acquire(blocking=False):
+        return _loop(function, items, done)
     _job = (function, items)
+    pool = None
     try:
-        with multiprocessing.get_context("fork").Pool(count, initializer=_mark_worker) as pool:
+        try:
+            pool = ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("fork"), initializer=_mark_worker)
+            with warnings.catch_warnings():
+                # Python 3.12+ warns of forking a process with threads (the browser app's, tqdm's monitor): the workers
+                # run only ``function`` and exit, touching no lock those threads may hold
+                warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+                results = pool.map(_call, range(len(items)))  # submits every item: the workers are forked here
+        except OSError:  # a fork refused (memory, process slots): end those already forked, and do the work here
+            _abandon(pool)
+            return _loop(function, items, done)
+        try:
             out = []
-            for item, result in zip(items, pool.imap(_call, range(len(items)))):
+            for item, result in zip(items, results):
                 out.append(result)
                 if done is not None:
                     done(item, result)
-            return out
+        except BrokenProcessPool as error:
+            _abandon(pool)
+            raise WorkerDied("a tracking worker process died (killed, as by the out-of-memory killer, or crashed); "
+                             "tracking on one process (annotate --track --workers 1, TrackingConfig.workers = 1) avoids it") from error
+        except BaseException:
+            _abandon(pool)
+            raise
+        pool.shutdown()
+        return out
     finally:
         _job = None
+        _forking.release()
+
+
+def _abandon(pool: ProcessPoolExecutor | None) -> None:
+    """Drop a pool's pending items and end its workers now (an error, or a fork that failed partway, whose
+    forked workers nothing would ever end: the interpreter would wait for them at exit)."""
+    if pool is None:
+        return
+    processes = list((getattr(pool, "_processes", None) or {}).values())  # the executor's own record of its workers
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(5)
+
+
+def _loop(function: Callable[[Item], Result], items: list[Item], done: Callable[[Item, Result], None] | None) -> list[Result]:
+    out = []
+    for item in items:
+        out.append(function(item))
+        if done is not None:
+            done(item, out[-1])
+    return out
