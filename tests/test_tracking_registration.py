@@ -279,3 +279,31 @@ def test_model_targets_face_the_cameras_that_saw_them():
         assert camera_obj[2] * side > 0
         towards = camera_obj - target.points
         assert target.oriented and np.all(np.einsum("ij,ij->i", np.asarray(target.cloud.normals), towards) > 0)
+
+
+def test_open3d_threads_holds_one_thread_until_the_last_overlapping_body_ends():
+    """A refinement in the browser may start and end while a track runs on another thread: the track keeps one thread."""
+    import threading
+
+    import open3d as o3d
+
+    from annotate.tracking.registration import open3d_threads
+
+    before = o3d.utility.get_max_threads()
+    entered, leave = threading.Event(), threading.Event()
+
+    def refinement() -> None:
+        with open3d_threads(1):
+            entered.set()
+            leave.wait(10)
+
+    worker = threading.Thread(target=refinement)
+    worker.start()
+    assert entered.wait(10)
+    with open3d_threads(1):  # the track starts while the refinement runs ...
+        leave.set()
+        worker.join(10)  # ... and the refinement ends first
+        assert o3d.utility.get_max_threads() == 1
+        with open3d_threads(0):  # 0 leaves the setting as it is
+            assert o3d.utility.get_max_threads() == 1
+    assert o3d.utility.get_max_threads() == before

@@ -102,24 +102,32 @@ def test_no_fork_possible_runs_the_map_here_and_leaves_no_worker(monkeypatch, re
             return getattr(fork, name)
 
     monkeypatch.setattr(workers.multiprocessing, "get_context", lambda method: Refusing())
+    others = set(multiprocessing.active_children())  # a map of another test's tracking thread may still run
     out = workers.ordered_map(lambda k: (k, os.getpid()), range(4), 2)
     assert out == [(k, os.getpid()) for k in range(4)]
-    assert multiprocessing.active_children() == []  # a worker left waiting would hold the interpreter at exit
+    assert set(multiprocessing.active_children()) <= others  # a worker left waiting would hold the interpreter at exit
 
 
 @needs_fork
-def test_an_error_in_the_progress_callback_stops_the_map_at_once():
+def test_an_error_in_the_progress_callback_stops_the_map_at_once(tmp_path):
     import multiprocessing
     import time
+
+    log = tmp_path / "ran.txt"
+
+    def item(k: int) -> None:
+        with open(log, "a") as out:  # one line per item that ran, from whichever worker
+            out.write(f"{k}\n")
+        time.sleep(0.05)
 
     def stop(item, result):
         raise KeyboardInterrupt  # the user pressed Ctrl-C while the bar updated
 
-    start = time.perf_counter()
+    others = set(multiprocessing.active_children())  # a map of another test's tracking thread may still run
     with pytest.raises(KeyboardInterrupt):
-        workers.ordered_map(lambda k: time.sleep(0.1), range(40), 2, done=stop)
-    assert time.perf_counter() - start < 2.0  # not after all 40 items (2 s on two workers)
-    assert multiprocessing.active_children() == []
+        workers.ordered_map(item, range(200), 2, done=stop)
+    assert len(log.read_text().split()) < 100  # the items not yet started were dropped, not all run first
+    assert set(multiprocessing.active_children()) <= others
 
 
 @needs_fork

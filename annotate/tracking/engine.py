@@ -97,6 +97,25 @@ class _Steps:
         if self.progress is not None:
             self.progress(self.done, self.total)
 
+    def phase(self, units: int) -> Progress:
+        """A (done, total) callback for a phase worth ``units`` of the total: it advances this count in proportion,
+        and the phase's units are counted in full once the next phase begins (or :meth:`finish`)."""
+        self.finish_phase()
+        start = self.done
+        self._phase_end = start + units
+
+        def advance(done: int, total: int) -> None:
+            target = start + (units * done) // max(total, 1)
+            while self.done < min(target, self._phase_end):
+                self()
+
+        return advance
+
+    def finish_phase(self) -> None:
+        """Count the rest of the current phase's units (a phase whose work turned out smaller or empty)."""
+        while self.done < getattr(self, "_phase_end", 0):
+            self()
+
 
 def _run_chains(tracker: Tracker, jobs: list[tuple[list[str], np.ndarray]], workers: int, steps: _Steps) -> list[dict[str, FrameResult]]:
     """``run_chain`` for each (frames, start pose) of ``jobs``, on up to ``workers`` processes; progress per chain."""
@@ -214,7 +233,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     a_idx = [position[m] for m in anchors]
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
     rounds = config.global_rounds + (1 if config.coarse_voxel_factor > 1 else 0)
-    steps = _Steps(chain_frames + rounds * len(ids), progress)
+    # the checks after the joint refinement (the recheck of the frames whose chains disagreed, the slides) count a
+    # frame's worth each: a laptop spent a third of its run in them with the bar already full
+    steps = _Steps(chain_frames + rounds * len(ids) + 2 * len(ids), progress)
 
     # 2-3: chains from every anchor, brought into anchor 0's object frame, and reconciled
     results: dict[str, FrameResult] = {}
@@ -264,7 +285,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
-    results = recheck_disagreements(tracker, results, chain_poses, anchors)
+    results = recheck_disagreements(tracker, results, chain_poses, anchors, steps.phase(len(ids)))
     if config.smoothing:
         results = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 and config.manual_translation_sigma > 0 else None, chained)
     # before the first and after the last manual frame only one chain ran: a second one, on the whole model
@@ -280,7 +301,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # the frames whose chains disagreed, against the model that holds none of their own points (refine.reregister_suspects)
     results = reregister_suspects(tracker, results, trusted, set(placed)) if trusted is not None else results
     # a flat object slides along its faces unseen by the ICP: the fitness on a wider crop sees it (slide.py)
-    slides = slide_corrections(tracker, results, trusted.target(min_hits_for(trusted, config)), set(anchors)) if trusted is not None else {}
+    sliding = steps.phase(len(ids))
+    slides = slide_corrections(tracker, results, trusted.target(min_hits_for(trusted, config)), set(anchors), sliding) if trusted is not None else {}
+    steps.finish_phase()
     # ... unless the slide takes the frame off the path of its neighbours: it is then flagged for review instead
     lone = against_the_motion(results, slides, config.slide_path_tolerance, {f for f, r in results.items() if suspect(r, config)})
     results = dict(results)

@@ -24,7 +24,7 @@ from .quality import pose_difference
 from .reconcile import common_correction, interpolate, pose_log
 from .symmetry import closest_about_y
 from .tracker import FrameResult, Tracker
-from .workers import ordered_map
+from .workers import counting, ordered_map
 
 
 def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int, always: list[str] = (), free_space: bool = True) -> ObjectModel:
@@ -273,6 +273,7 @@ def recheck_disagreements(
     results: dict[str, FrameResult],
     chain_poses: dict[str, tuple[np.ndarray, np.ndarray]],
     anchors: list[str] = (),
+    progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, FrameResult]:
     """Re-measure the chains' disagreement of the frames it made suspect, against their final poses.
 
@@ -321,7 +322,8 @@ def recheck_disagreements(
             worst_deg, worst_m = max(worst_deg, deg), max(worst_m, metres)
         return worst_deg, worst_m
 
-    for frame_id, worst in zip(todo, ordered_map(rivals, todo, config.worker_count())):
+    counted = counting(progress, len(todo))
+    for frame_id, worst in zip(todo, ordered_map(rivals, todo, config.worker_count(), counted)):
         if worst is None:
             continue
         final, (worst_deg, worst_m) = results[frame_id], worst

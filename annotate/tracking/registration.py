@@ -45,6 +45,7 @@ candidate), the laptop of seed 1 went from 1.54 to 31-178 deg p90 at 202-227 ms 
 
 from __future__ import annotations
 
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
@@ -140,16 +141,34 @@ def open3d_threads(count: int) -> Iterator[None]:
     One thread makes tracking reproducible: Open3D's parallel reductions (ICP normal equations)
     sum in a varying order, and the chains amplify those last-bit differences (measured: the same
     mug run gave a median of 1.3 to 1.8 deg in five runs; with one thread the same figures each time).
+
+    The setting is one per process, and the browser tool may refine a frame while a track runs on another
+    thread: the lowest count of the bodies running holds until the last of them ends, and only then comes the
+    setting from before the first (restoring on each exit let the end of a refinement put a running track back
+    on every thread, and its worker processes would fork from there: workers.py).
     """
+    global _threads_before
     if count <= 0:
         yield
         return
-    before = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(int(count))
+    count = int(count)
+    with _threads_lock:
+        if not _thread_limits:
+            _threads_before = o3d.utility.get_max_threads()
+        _thread_limits.append(count)
+        o3d.utility.set_max_threads(min(_thread_limits))
     try:
         yield
     finally:
-        o3d.utility.set_max_threads(before)
+        with _threads_lock:
+            _thread_limits.remove(count)
+            o3d.utility.set_max_threads(min(_thread_limits) if _thread_limits else _threads_before)
+
+
+#: The counts of the :func:`open3d_threads` bodies running now (any thread), and Open3D's setting before the first.
+_thread_limits: list[int] = []
+_threads_before = 0
+_threads_lock = threading.Lock()
 
 
 @dataclass

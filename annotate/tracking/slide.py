@@ -31,12 +31,14 @@ CPU per laptop frame (most are checked; 800 points of the crop, 62 shifts): benc
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .registration import ModelTarget
 from .smooth import registration_information
 from .tracker import FrameResult, Tracker
-from .workers import ordered_map
+from .workers import counting, ordered_map
 
 #: shifts (m) tried along the weak direction, then refined on a finer grid about the best
 COARSE_STEP_M = 0.0025
@@ -93,7 +95,8 @@ def best_shift(points_obj: np.ndarray, target: ModelTarget, direction: np.ndarra
     return shift, float(fine_fit.max()), at_zero, beyond
 
 
-def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target: ModelTarget, skip: set[str] = frozenset()) -> dict[str, np.ndarray]:
+def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target: ModelTarget, skip: set[str] = frozenset(),
+                      progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """Per frame whose fitness clearly rises when it slides along its weak direction: the object-frame shift (3,) m.
 
     ``pose @ T(shift)`` (a translation by ``shift`` in the object frame) is the corrected pose. Frames in
@@ -131,7 +134,7 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
         return None
 
     todo = [f for f, r in results.items() if f not in skip and r.ok]
-    return {f: shift for f, shift in zip(todo, ordered_map(slide, todo, config.worker_count())) if shift is not None}
+    return {f: shift for f, shift in zip(todo, ordered_map(slide, todo, config.worker_count(), counting(progress, len(todo)))) if shift is not None}
 
 
 def against_the_motion(results: dict[str, FrameResult], slides: dict[str, np.ndarray], tolerance: float, doubtful: set[str] = frozenset()) -> set[str]:

@@ -118,11 +118,22 @@ def _abandon(pool: ProcessPoolExecutor | None) -> None:
     if pool is None:
         return
     processes = list((getattr(pool, "_processes", None) or {}).values())  # the executor's own record of its workers
+    manager = getattr(pool, "_executor_manager_thread", None)  # it reaps the workers of a broken pool
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         process.terminate()
     for process in processes:
         process.join(5)
+    if manager is not None:
+        manager.join(5)
+
+
+def counting(progress: Callable[[int, int], None] | None, total: int) -> Callable[[object, object], None] | None:
+    """A ``done`` callback for :func:`ordered_map` that reports (items done, ``total``) to ``progress`` (None: none)."""
+    if progress is None:
+        return None
+    count = iter(range(1, total + 1))
+    return lambda *_: progress(next(count), total)
 
 
 def _loop(function: Callable[[Item], Result], items: list[Item], done: Callable[[Item, Result], None] | None) -> list[Result]:
