@@ -34,7 +34,7 @@ poses at all is judged on all categories and seeds, pooled, not on one sequence'
 errors from the placed boxes' (measured, rot median/p90 deg, centre mm, exact vs issue's anchors: camera
 seed 0 0.34/0.96, 0.93 vs 1.41/2.24, 3.04; camera seed 1 1.05/2.04, 5.96 vs 1.84/2.37, 2.21; bowl seed 1
 1.71/3.76, 2.94 vs 1.53/2.46, 2.45).
-``--profile N`` prints the N tracking entries with the most cumulative time (cProfile; its
+``--profile N`` prints the N tracking entries with the most cumulative time (cProfile, on one process; its
 overhead inflates the timing columns of that run). The
 F-score also measures reconstruct-sequence itself: with every frame at its true pose it is
 the reconstruction's own ceiling. Both meshes are sampled at most half the threshold apart
@@ -102,7 +102,8 @@ def run_one(root: Path, backend: str, manual: int, seed: int, profile: int = 0,
     wall, cpu = time.perf_counter(), _cpu_seconds()
     if profiler is not None:
         profiler.enable()
-    config = TrackingConfig(backend=backend)
+    # a profile sees this process only: all the work in it, on one process
+    config = TrackingConfig(backend=backend, workers=1 if profiler is not None else 0)
     if placement_sigma is not None:
         config.manual_rotation_sigma_deg, config.manual_translation_sigma = placement_sigma
     config.registration.facing = facing
