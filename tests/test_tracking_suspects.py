@@ -113,3 +113,27 @@ def test_the_suspect_steps_give_the_same_poses_on_worker_processes(scene):
             assert np.array_equal(one[f].pose, two[f].pose), (k, f)
             assert one[f].figures == two[f].figures
     assert any(not np.array_equal(out[1][2][f].pose, results[f].pose) for f in suspects)  # the round moved them
+
+
+def test_a_frame_left_turned_over_is_registered_again_from_the_frame_before(scene):
+    from annotate.tracking.config import TrackingConfig as Config
+    from annotate.tracking.quality import document_figures
+    from annotate.tracking.refine import repair_flips
+
+    tracker, truth, ids, _, _ = scene
+    over = np.eye(4)
+    over[:3, :3] = Rotation.from_euler("x", 180, degrees=True).as_matrix()  # upside down about the box centre
+    results = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
+    for f in (ids[4], ids[6]):  # two frames turned over, the frame between them right: each is judged by the one before
+        results[f] = FrameResult(truth[f] @ over, True, dict(SUSPECT))
+    results[ids[9]] = FrameResult(truth[ids[9]] @ over, True, dict(TRUSTED))  # a manual frame is left as placed
+    out = repair_flips(tracker, results, anchors=[ids[9]])
+    for f in (ids[4], ids[6]):
+        assert pose_difference(out[f].pose, truth[f], False)[0] < 1.0, f
+        assert out[f].figures["flip_repaired_deg"] > 170.0
+        assert "turned over" in document_figures(dict(out[f].figures), Config())["flag_reason"]
+    np.testing.assert_array_equal(out[ids[9]].pose, results[ids[9]].pose)
+    for f in set(ids) - {ids[4], ids[6], ids[9]}:
+        np.testing.assert_array_equal(out[f].pose, truth[f])
+    calm = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
+    assert repair_flips(tracker, calm) is calm  # nothing turned over: nothing built, nothing changed

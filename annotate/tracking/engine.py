@@ -14,6 +14,9 @@
    disagreement is re-measured against the final pose (refine.recheck_disagreements); the
    models of all frames leave out voxels that other frames see through (a hand before a
    regrasp, freespace.py);
+4a. flips: a frame the refinement left turned over from the frame before it (a bottle upside down: its ends fit
+   each other's place) is registered again from that frame's pose (refine.repair_flips), before the smoothing
+   would average it with its neighbours (a bottle with 3 manual frames: p90 49 -> 1.2 deg);
 4b. smooth: where a frame's registration leaves a direction weak (a mug's spin with its handle
    hidden), the pose is taken from its neighbours by an information-weighted least-squares
    smoothing (smooth.py). Then the frames still suspect (their chains disagreed and no restart
@@ -71,7 +74,7 @@ from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .model import ObjectModel
-from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, reregister_suspects, smooth_refined, suspect, trusted_model
+from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model
 from .slide import against_the_motion, shifted, slide_corrections
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tracker import FrameResult, Tracker
@@ -284,6 +287,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     chained = {f: r.pose for f, r in results.items()}
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
+    # a frame the refinement left turned over (a bottle upside down) is brought back before the smoothing averages it in
+    results = repair_flips(tracker, results, anchors)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors, steps.phase(len(ids)))
     if config.smoothing:

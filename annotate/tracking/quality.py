@@ -71,6 +71,9 @@ def pose_reasons(figures: dict, config) -> list[str]:
     if large_rejected_step(figures, config):
         reasons.append(f"the joint refinement found a pose {figures['refine_rejected_deg']:.1f} deg and "
                        f"{figures['refine_rejected_m'] * 1000:.0f} mm away that fits nearly as well")
+    if "flip_repaired_deg" in figures:
+        reasons.append(f"the joint refinement left it turned over, {figures['flip_repaired_deg']:.0f} deg from the frame before: "
+                       "registered again from that frame's pose")
     if "slide_rejected_m" in figures:
         reasons.append(f"the fitness rises {figures['slide_rejected_m'] * 1000:.0f} mm along the direction its registration leaves free, "
                        "off its neighbours' path: slid or not, the pose is unsure")
