@@ -80,7 +80,6 @@ class TrackingConfig:
         if not self.voxel_size > 0:
             raise ValueError("voxel_size must be positive")
 
-
     def worker_count(self) -> int:
         """Processes for independent work: one unless Open3D runs on one thread (a thread pool does not survive a fork)."""
         return resolve(self.workers) if self.threads == 1 else 1

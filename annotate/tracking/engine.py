@@ -94,6 +94,7 @@ class _Steps:
 
     def __init__(self, total: int, progress: Progress | None) -> None:
         self.total, self.done, self.progress = total, 0, progress
+        self._phase_end = 0  # where the current phase's units end (:meth:`phase`)
 
     def __call__(self) -> None:
         self.done += 1
@@ -102,7 +103,7 @@ class _Steps:
 
     def phase(self, units: int) -> Progress:
         """A (done, total) callback for a phase worth ``units`` of the total: it advances this count in proportion,
-        and the phase's units are counted in full once the next phase begins (or :meth:`finish`)."""
+        and the phase's units are counted in full once the next phase begins (or :meth:`finish_phase`)."""
         self.finish_phase()
         start = self.done
         self._phase_end = start + units
@@ -116,7 +117,7 @@ class _Steps:
 
     def finish_phase(self) -> None:
         """Count the rest of the current phase's units (a phase whose work turned out smaller or empty)."""
-        while self.done < getattr(self, "_phase_end", 0):
+        while self.done < self._phase_end:
             self()
 
 

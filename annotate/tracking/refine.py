@@ -16,6 +16,7 @@ import numpy as np
 
 from evaluate.geometry import invert
 
+from .consistency import rotation_jumps
 from .freespace import free_space_votes
 from .smooth import registration_information, smooth_poses
 from .model import ObjectModel
@@ -504,8 +505,7 @@ def repair_flips(tracker: Tracker, results: dict[str, FrameResult], anchors: lis
     symmetric = tracker.symmetric
     pinned = set(anchors)
     trusted = [i for i, f in enumerate(order) if results[f].ok and (f in pinned or not suspect(results[f], config))]
-    ok = [f for f in order if results[f].ok]
-    if not trusted or not any(pose_difference(results[a].pose, results[b].pose, symmetric)[0] > FLIP_DEG for a, b in zip(ok, ok[1:])):
+    if not trusted or not np.any(rotation_jumps([r.pose for r in results.values() if r.ok], symmetric) > FLIP_DEG):
         return results
     model = trusted_model(tracker, results, anchors)
     hits = min_hits_for(model, config) if model is not None else 1
