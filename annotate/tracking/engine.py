@@ -8,7 +8,8 @@
    meet when one of them lost the object (reconcile.py);
 4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py), first once
    against a twice coarser model, where the copies of a detail that stretches between manual frames left
-   side by side merge (refine.coarse_round);
+   side by side merge (refine.coarse_round); a later round that bends the sequence (the manual frames' refined
+   poses no longer fit their placed boxes as one object frame: refine.anchor_bend) is undone;
    where the two chains disagreed, the frame is re-registered from each chain's pose: when no
    start finds a rival pose fitting as well and the pose is smooth with its neighbours, the
    disagreement is re-measured against the final pose (refine.recheck_disagreements); the
@@ -287,7 +288,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # 1.26/3.09/3.21 -> 1.03/1.59/1.32, 1.41/4.78/2.08, 1.19/7.54/2.11, 1.28/2.08/2.88 (deg, deg, mm)
     chained = {f: r.pose for f, r in results.items()}
     results = coarse_round(tracker, results, anchors, steps)
-    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
+    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)
     # a frame the refinement left turned over (a bottle upside down) is brought back before the smoothing averages it in
     results = repair_flips(tracker, results, anchors)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
