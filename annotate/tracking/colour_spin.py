@@ -10,23 +10,31 @@ the axis. Chromaticity (r, g, b divided by their sum) is used, not the colour it
 Lambert shading scales all three channels alike as the object turns under the light.
 
 For each frame, the spin about the axis fitted to the model (symmetry.fit_symmetry_axis, the
-handle an outlier to it) is varied over a small grid; where the geometric fitness stays within
-``SPIN_FIT_MARGIN`` of the frame's own (the spin is free), the chromaticity of the frame's points
-is compared with a colour model built only from frames whose geometry does fix the spin (their
-colours are placed right). The angle that matches the colours best, when it matches clearly
-better than the pose itself, is how far the colour says the spin is off; a frame's verdict is the
-median over its checked neighbours (one frame's colours alone are noisy).
+handle an outlier to it) is varied over a 1 deg grid; where the geometric fitness stays within
+``SPIN_FIT_MARGIN`` of the frame's own (the spin is free), the chromaticity of the frame's pixels
+is compared with a colour model made of the pixels of frames whose geometry does fix the spin
+(their colours are placed right), each pixel against the nearest model pixel within
+``COLOUR_RADIUS``. The angle that matches the colours best, when it matches clearly better than
+the pose itself, is how far the colour says the spin is off; a frame's verdict sums its cost curve
+with those of its checked neighbours (one frame's colours alone are noisier).
 
-The engine turns such a frame by that spin (``TrackingConfig.colour_spin_correct``) and flags it
-beyond ``max_colour_spin_deg``. Measured on the v5 sequences (seeds 0 and 1): the mug of seed 1 had
-4 frames off by 10-14 deg without a flag; the check turns 33 frames and flags 15 more (all 4-14 deg
-off before the turn), and at the true poses it turns 2 of 30 checked frames by 2.5 deg; turned, the
-mug's rotation error went from 3.36 / 7.60 to 2.05 / 5.01 deg (median / p90) and no frame is off by
-more than 10 deg; the mug of seed 0 checks 2-4 frames and changes none. The verdicts depend on the
-sampling: 400 points per frame and 12 model frames gave 2.42 / 5.31, 800 and 20 with a 10% gain
-3.29 / 6.91 (frames 20-28 found no clear gain); a 5% gain was steady over those samplings;
-a camera or a laptop does not spin freely (the model spun by 10 deg does not fit itself) and is not
-checked. Time: 1-2 ms per frame on a mug, under 0.5 on the others.
+The engine turns such a frame by that spin (``TrackingConfig.colour_spin_correct``; not a manual
+frame: the object frame is fitted to those) and flags it beyond ``max_colour_spin_deg``.
+
+Measured on the v5 mugs, seeds 1-3 (4 manual frames off by up to 3 deg), against the truth spin of
+the checked frames: a colour model of voxels (4 mm: 6 deg of a 4 cm radius) put a frame's best
+match +-5 deg from it even at the true pose, and its verdicts (2.5 deg grid, medians over 7 frames)
+turned seed 1's frames 12-28 twice as far as they were off; the pixels (2 mm) find it within 1.1 /
+1.3 / 2.6 deg (median per frame; seed 3's frames had also slid 4-12 mm along the axis, which the
+spin cannot undo). The spin error of the checked frames (median / p90), before the check,
+after the voxels' verdicts and after the pixels' (summed curves of 3 frames): seed 1 4.6 / 7.8,
+3.2 / 5.9, 1.0 / 4.9 deg; seed 2 2.2 / 5.5, 2.4 / 4.4, 1.4 / 3.4; seed 3 3.3 / 6.8, unchanged,
+2.9 / 5.8. Over the mugs of seeds 0-3 (sums of the four p90s, deg), 4 manual frames
+off by up to 3 deg: 14.1 -> 13.2; 3 manual frames off by up to 3 deg: 11.4 -> 11.2; off by up to
+5 deg: 10.4 -> 8.8 (mug goal checks failing 8 -> 7). A 5% gain rule left seed 1's frames 20-24
+(5 deg off, 3-6% gains) unturned; 0% turned seed 3 with 3 manual frames further off (p90 2.96 ->
+3.79). A camera or a laptop does not spin freely (the model spun by 10 deg does not fit itself)
+and is not checked. Time: 0.8 s per mug of 100 frames (29-34 checked; 0.3 s with the voxels), on one core.
 """
 
 from __future__ import annotations
@@ -38,26 +46,29 @@ from scipy.spatial.transform import Rotation
 from .symmetry import fit_symmetry_axis
 
 #: spins (degrees) tried about the axis: a grid, the frame's own pose in the middle
-SPIN_GRID_DEG = np.arange(-15.0, 15.01, 2.5)
+SPIN_GRID_DEG = np.arange(-15.0, 15.01, 1.0)
 #: a spin whose geometric fitness is within this of the pose's own is one the geometry cannot tell apart
 SPIN_FIT_MARGIN = 0.03
 #: the spin that geometry leaves free must be at least this wide (degrees each side) for a colour check
 FREE_SPIN_DEG = 10.0
 #: the best colour match must lower the chromaticity difference by this share to count
-MIN_COLOUR_GAIN = 0.05
+MIN_COLOUR_GAIN = 0.02
 #: at most this many frames (evenly spaced) build the colour model
-COLOUR_MODEL_FRAMES = 16
-#: points per frame used (every k-th beyond): the check's time stays bounded
+COLOUR_MODEL_FRAMES = 24
+#: voxel points per frame used for the geometric fitness (every k-th beyond): the check's time stays bounded
 MAX_CHECK_POINTS = 600
+#: pixels per frame whose colours are compared, and that each model frame contributes (every k-th beyond)
+MAX_COLOUR_PIXELS = 1000
+#: a frame's pixel takes the colour of the nearest model pixel within this (m): the pixels, not the voxels,
+#: since a 4 mm voxel spans 6 deg of a mug's 4 cm radius (measured below)
+COLOUR_RADIUS = 0.002
 #: the model spun by FREE_SPIN_DEG must still fit itself with this share of its points (a mug: its body),
 #: else no spin is free anywhere (a camera, a laptop) and no frame is checked
 MIN_ROUND_SHARE = 0.6
-#: chromaticity difference (L1) beyond which a point's colour disagrees with the model (0: the mean difference as cost)
-COLOUR_TOLERANCE = 0.0
-#: frames either side (in frame order, among the checked ones) whose preferred spins share a frame's median
-SPIN_WINDOW = 3
+#: frames either side (in frame order, among the checked ones) whose colour curves are summed with a frame's own
+SPIN_WINDOW = 1
 #: ... and at least this many checked frames in that window for a verdict
-MIN_WINDOW_FRAMES = 3
+MIN_WINDOW_FRAMES = 2
 #: model points used to fit the axis and test the roundness (every k-th beyond)
 MAX_AXIS_POINTS = 1500
 
@@ -111,24 +122,16 @@ class ColourSpinCheck:
     def _spun(self, local: np.ndarray, degrees: float) -> np.ndarray:
         return (local - self.point) @ self._R[float(degrees)] + self.point
 
-    @staticmethod
-    def _cost(frame: np.ndarray, model: np.ndarray) -> float:
-        """How badly a frame's chromaticities (N, 3) match the model's at their nearest voxels (N, 3)."""
-        diff = np.abs(frame - model).sum(axis=1)
-        if COLOUR_TOLERANCE > 0:
-            return float(np.mean(diff > COLOUR_TOLERANCE))  # the share of points whose colour disagrees
-        return float(diff.mean())
-
     def round(self) -> bool:
         """Whether the model spun by FREE_SPIN_DEG about its axis still fits itself (MIN_ROUND_SHARE): a spin can be free."""
         return self._fitness(self._spun(self._sample, FREE_SPIN_DEG)) >= MIN_ROUND_SHARE
 
-    def _local(self, frame_id: str, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A frame's points at ``pose``: camera frame and object frame (every k-th beyond MAX_CHECK_POINTS)."""
+    def _local(self, frame_id: str, pose: np.ndarray) -> np.ndarray:
+        """A frame's voxel points at ``pose``, object frame (N, 3) (every k-th beyond MAX_CHECK_POINTS)."""
         points, _ = self.tracker.crop(frame_id, pose, margin=0.0)
         if len(points) > MAX_CHECK_POINTS:
             points = points[:: int(np.ceil(len(points) / MAX_CHECK_POINTS))]
-        return points, (points - pose[:3, 3]) @ pose[:3, :3]
+        return (points - pose[:3, 3]) @ pose[:3, :3]
 
     def _colours(self, frame_id: str, points_cam: np.ndarray) -> np.ndarray:
         store = self.tracker.store
@@ -136,6 +139,14 @@ class ColourSpinCheck:
             s = store.stride
             self._images[frame_id] = np.ascontiguousarray(store.sequence.color(frame_id)[::s, ::s])
         return sample_colours(points_cam, self._images[frame_id], store.sequence.camera, store.stride)
+
+    def _pixels(self, frame_id: str, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A frame's pixels in the box at ``pose`` (not voxel-averaged: a voxel blurs the label's edges): their
+        object-frame points (N, 3) and chromaticities (N, 3), every k-th beyond MAX_COLOUR_PIXELS."""
+        points, _ = self.tracker.store.crop(frame_id, pose, self.tracker.box, 0.0, None)
+        if len(points) > MAX_COLOUR_PIXELS:
+            points = points[:: int(np.ceil(len(points) / MAX_COLOUR_PIXELS))]
+        return (points - pose[:3, 3]) @ pose[:3, :3], chromaticity(self._colours(frame_id, points))
 
     def free_spin(self, local: np.ndarray) -> bool:
         """Whether spinning the frame by +-FREE_SPIN_DEG keeps its geometric fitness (the geometry leaves the spin free)."""
@@ -157,58 +168,56 @@ class ColourSpinCheck:
         if not self.round():
             return {}
         local = {f: self._local(f, P) for f, P in poses.items()}
-        free = [f for f, (_, q) in local.items() if len(q) >= config.min_points // 4 and self.free_spin(q)]
-        fixed = [f for f in poses if f not in set(free) and fitness.get(f, 0.0) >= config.min_fitness and len(local[f][1])]
+        free = [f for f, q in local.items() if len(q) >= config.min_points // 4 and self.free_spin(q)]
+        fixed = [f for f in poses if f not in set(free) and fitness.get(f, 0.0) >= config.min_fitness and len(local[f])]
         if not free or len(fixed) < 3:
             return {}
         picks = [fixed[i] for i in np.unique(np.linspace(0, len(fixed) - 1, min(COLOUR_MODEL_FRAMES, len(fixed))).round().astype(int))]
-        model_chroma = self._colour_model({f: local[f] for f in picks})
-        curves = {f: self._curve(*local[f], f, model_chroma) for f in free}
-        own = np.array([preferred_spin([curves[f]]) for f in free])
+        colour_model = ColourModel([self._pixels(f, poses[f]) for f in picks])
+        curves = {f: self._curve(local[f], self._pixels(f, poses[f]), colour_model) for f in free}
         order = np.array([list(poses).index(f) for f in free])
-        # a frame's few coloured points are noisy (measured: +-5 deg on a v5 mug) and the spin error of
-        # neighbouring frames differs little (the chains carry it along): the median over the frame's neighbours
+        # a frame's few hundred coloured pixels are noisy and the spin error of neighbouring frames differs
+        # little (the chains carry it along): the curves of the frame and its neighbours are summed
         out = {}
         for f, k in zip(free, order):
-            near = own[np.abs(order - k) <= SPIN_WINDOW]
-            out[f] = float(np.median(near)) if len(near) >= MIN_WINDOW_FRAMES else 0.0  # one or two frames: too noisy to judge
+            near = [curves[g] for g, j in zip(free, order) if abs(j - k) <= SPIN_WINDOW and np.any(np.isfinite(curves[g]))]
+            out[f] = preferred_spin(near) if len(near) >= MIN_WINDOW_FRAMES else 0.0  # a lone frame: too noisy to judge
         return out
 
-    def _colour_model(self, views: dict[str, tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-        """Mean chromaticity (M, 3) per model point from the frames' points (camera, object frame); NaN where none fell."""
-        distance = self.tracker.config.registration.quality_distance
-        chroma_sum = np.zeros((len(self.points), 3))
-        count = np.zeros(len(self.points))
-        for f, (cam, q) in views.items():
-            d, i = self.tree.query(q, distance_upper_bound=distance)
-            near = np.isfinite(d)
-            chroma = chromaticity(self._colours(f, cam[near]))
-            for k in range(3):
-                chroma_sum[:, k] += np.bincount(i[near], weights=chroma[:, k], minlength=len(self.points))
-            count += np.bincount(i[near], minlength=len(self.points))
-        out = chroma_sum / np.maximum(count, 1)[:, None]
-        out[count == 0] = np.nan
-        return out
-
-    def _curve(self, cam: np.ndarray, local: np.ndarray, frame_id: str, model_chroma: np.ndarray) -> np.ndarray:
+    def _curve(self, local: np.ndarray, pixels: tuple[np.ndarray, np.ndarray], model: "ColourModel") -> np.ndarray:
         """Colour cost per angle of SPIN_GRID_DEG, relative to the cost at the pose (1 there); inf where the
-        spun pose fits the geometry clearly worse or too few points meet coloured model points."""
+        spun pose fits the geometry clearly worse (``local``: the frame's voxel points, object frame) or too
+        few of the frame's ``pixels`` (object-frame points, chromaticities) meet model pixels."""
         config = self.tracker.config
-        chroma = chromaticity(self._colours(frame_id, cam))
+        q, chroma = pixels
         costs, fits = [], []
         for deg in SPIN_GRID_DEG:
-            d, i = self.tree.query(self._spun(local, deg), distance_upper_bound=config.registration.quality_distance)
-            near = np.isfinite(d)
-            fits.append(float(np.mean(near)))
-            use = near.copy()
-            use[near] = np.isfinite(model_chroma[i[near], 0])
-            costs.append(self._cost(chroma[use], model_chroma[i[use]]) if use.sum() >= config.min_points // 4 else np.inf)
+            fits.append(self._fitness(self._spun(local, deg)))
+            costs.append(model.cost(self._spun(q, deg), chroma, config.min_points // 4))
         costs, fits = np.asarray(costs), np.asarray(fits)
         k0 = int(np.argmin(np.abs(SPIN_GRID_DEG)))
         costs[fits < fits[k0] - SPIN_FIT_MARGIN] = np.inf
         if not np.isfinite(costs[k0]) or costs[k0] <= 0:
             return np.full(len(SPIN_GRID_DEG), np.nan)  # no colour evidence at the pose itself: this frame says nothing
         return costs / costs[k0]
+
+
+class ColourModel:
+    """The object's colours: the pixels of frames whose spin the geometry fixes, object frame, with their chromaticities."""
+
+    def __init__(self, views: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        self.points = np.concatenate([q for q, _ in views]) if views else np.zeros((0, 3))
+        self.chroma = np.concatenate([c for _, c in views]) if views else np.zeros((0, 3))
+        self.tree = cKDTree(self.points)
+
+    def cost(self, local: np.ndarray, chroma: np.ndarray, min_matches: int) -> float:
+        """Mean chromaticity difference (L1) between pixels at object-frame ``local`` (N, 3) with ``chroma`` (N, 3)
+        and the model pixels nearest them within COLOUR_RADIUS; inf where fewer than ``min_matches`` have one."""
+        d, i = self.tree.query(local, distance_upper_bound=COLOUR_RADIUS)
+        near = np.isfinite(d)
+        if near.sum() < max(min_matches, 1):
+            return np.inf
+        return float(np.abs(chroma[near] - self.chroma[i[near]]).sum(axis=1).mean())
 
 
 def preferred_spin(curves: list[np.ndarray]) -> float:
