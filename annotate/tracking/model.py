@@ -124,6 +124,14 @@ class ObjectModel:
         return self._target
 
 
+    def prepare(self, min_hits: int = 1) -> ModelTarget:
+        """The registration target (:meth:`target`) with its normals and KD-tree built now: before the work forks,
+        so the workers inherit them instead of each building its own."""
+        target = self.target(min_hits)
+        target.tree()
+        return target
+
+
 def _sum_rows(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
     """Sums (count, 3) of the rows of ``values`` (N, 3) by ``index`` (N,): np.add.at's result, one bincount per column (faster)."""
     return np.stack([np.bincount(index, weights=values[:, k], minlength=count) for k in range(3)], axis=1)

@@ -117,7 +117,7 @@ def refine_all(
             poses = best_agreeing(results, max(3, len(results) // 4), config)
         model = build_model(tracker, poses, config.max_global_frames, [a for a in anchors if a in poses])
         hits = min_hits_for(model, config)
-        model.target(hits).tree()  # built once here (normals and KD-tree), not in every worker
+        model.prepare(hits)
         # every frame from its own pose: independent registrations, on several processes where there are cores
         own = dict(zip(results, ordered_map(lambda f: tracker.register(f, results[f].pose, model, hits), list(results), config.worker_count(), step and (lambda *_: step()))))
         updated: dict[str, FrameResult] = {}
@@ -336,7 +336,7 @@ def recheck_disagreements(
     if model is None:
         return results  # too few trusted frames for a model to judge by
     hits = min_hits_for(model, config)
-    model.target(hits).tree()  # built once here (normals and KD-tree), not in every worker
+    model.prepare(hits)
     out = dict(results)
     order = list(results)
 
@@ -399,7 +399,7 @@ def reregister_suspects(tracker: Tracker, results: dict[str, FrameResult], model
     hits = min_hits_for(model, config)
     limits = replace(config, max_refine_step_deg=config.max_suspect_step_deg)
     out = dict(results)
-    model.target(hits).tree()  # built once here (normals and KD-tree), not in every worker
+    model.prepare(hits)
     for frame_id, again in zip(todo, ordered_map(lambda f: tracker.register(f, results[f].pose, model, hits), todo, config.worker_count())):
         before = results[frame_id]
         if again.ok and not large_step(*pose_difference(before.pose, again.pose, tracker.symmetric), limits):
