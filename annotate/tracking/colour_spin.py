@@ -184,7 +184,7 @@ class ColourSpinCheck:
             out[f] = preferred_spin(near) if len(near) >= MIN_WINDOW_FRAMES else 0.0  # a lone frame: too noisy to judge
         return out
 
-    def _curve(self, local: np.ndarray, pixels: tuple[np.ndarray, np.ndarray], model: "ColourModel") -> np.ndarray:
+    def _curve(self, local: np.ndarray, pixels: tuple[np.ndarray, np.ndarray], model: ColourModel) -> np.ndarray:
         """Colour cost per angle of SPIN_GRID_DEG, relative to the cost at the pose (1 there); inf where the
         spun pose fits the geometry clearly worse (``local``: the frame's voxel points, object frame) or too
         few of the frame's ``pixels`` (object-frame points, chromaticities) meet model pixels."""

@@ -123,7 +123,6 @@ class ObjectModel:
             self._adds_since_target = 0
         return self._target
 
-
     def prepare(self, min_hits: int = 1) -> ModelTarget:
         """The registration target (:meth:`target`) with its normals and KD-tree built now: before the work forks,
         so the workers inherit them instead of each building its own."""
