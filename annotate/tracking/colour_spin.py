@@ -154,6 +154,11 @@ class ColourSpinCheck:
         # one side first: most frames of a mug with its handle in view already fit clearly worse there
         return all(self._fitness(self._spun(local, d)) >= own - SPIN_FIT_MARGIN for d in (FREE_SPIN_DEG, -FREE_SPIN_DEG))
 
+    def spin_free_at(self, frame_id: str, pose: np.ndarray) -> bool:
+        """Whether the frame at ``pose`` (4x4, the model's object frame) leaves its spin free (:meth:`free_spin`)."""
+        local = self._local(frame_id, pose)
+        return len(local) >= self.tracker.config.min_points // 4 and self.free_spin(local)
+
     def _fitness(self, local: np.ndarray) -> float:
         d, _ = self.tree.query(local, distance_upper_bound=self.tracker.config.registration.quality_distance)
         return float(np.mean(np.isfinite(d))) if len(d) else 0.0

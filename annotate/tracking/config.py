@@ -39,6 +39,7 @@ class TrackingConfig:
     free_space_tolerance: float = 0.01  #: global models drop voxels seen through by more than this (0: off)
     max_through_share: float = 0.5  #: ... in more than this share of the frames that see them (a moved hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
+    stretch_spin_check: bool = True  #: near-round objects without symmetry (a mug): turn blocks of frames about the axis to the spin the model of the other frames prefers (stretch_spin.py)
     smoothing: bool = True  #: smooth the refined poses where registration leaves a direction weak (smooth.py)
     information_sigma: float = 0.002  #: point noise (m) scaling a frame's registration information
     rotation_acceleration_deg: float = 0.5  #: expected rotational acceleration, deg per frame squared (hand-held, 30 fps)
