@@ -15,7 +15,7 @@
    disagreement is re-measured against the final pose (refine.recheck_disagreements); the
    models of all frames leave out voxels that other frames see through (a hand before a
    regrasp, freespace.py);
-4s. stretches (a near-round object without symmetry, where some frame's shape leaves the spin free: a mug): a
+4s. stretches (a near-round object without symmetry, where consecutive frames' shape leaves the spin free: a mug): a
    stretch of frames that came out of the chains turned about the axis holds itself there in the model of all
    frames; each block of frames, registered to the model of the others, is turned by the spin they agree on
    (stretch_spin.py: mug seed 1 p90 4.7 -> 2.85 deg);

@@ -99,7 +99,8 @@ def _block_spin(tracker: Tracker, results: dict[str, FrameResult], order: list[s
     outside it and ``margin`` frames either side, or None where they do not clearly agree on one."""
     config = tracker.config
     trusted = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, config)}
-    others = {f: P for f, P in trusted.items() if not b0 - margin <= order.index(f) < b0 + block + margin}
+    near = set(order[max(b0 - margin, 0) : b0 + block + margin])
+    others = {f: P for f, P in trusted.items() if f not in near}
     if len(others) < MIN_MODEL_FRAMES:
         return None
     model = build_model(tracker, others, config.max_global_frames)
@@ -112,7 +113,7 @@ def _block_spin(tracker: Tracker, results: dict[str, FrameResult], order: list[s
         if not r.ok or r.figures.get("fitness", 0.0) < config.min_fitness:
             continue
         # the registration's turn, object frame: its component about the axis
-        change = np.linalg.inv(trusted[f])[:3, :3] @ r.pose[:3, :3]
+        change = trusted[f][:3, :3].T @ r.pose[:3, :3]
         spins.append(float(np.degrees(Rotation.from_matrix(change).as_rotvec() @ axis)))
     if len(spins) < max(2, block // 2):
         return None
