@@ -57,6 +57,13 @@ def transform(T, points) -> np.ndarray:
     return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
+def untransform(T, points) -> np.ndarray:
+    """(N, 3) points given in the frame a rigid 4x4 ``T`` maps into, in the frame it maps from (camera -> object
+    for a pose): ``transform(invert(T), points)``, without forming the inverse."""
+    T = np.asarray(T, dtype=np.float64)
+    return (np.asarray(points, dtype=np.float64) - T[:3, 3]) @ T[:3, :3]
+
+
 def box_corners(extents, T=None) -> np.ndarray:
     """(8, 3) corners of a box centred on the origin with full side lengths ``extents``.
 

@@ -40,3 +40,15 @@ def test_redwood_raw_axes():
     assert np.allclose(g.transform(T_raw, g.shapenet_to_raw_points(p_sn)), g.transform(T, p_sn))
     assert np.allclose(g.raw_to_shapenet_pose(T_raw), T)
     assert np.isclose(np.linalg.det(g.RAW_FROM_SHAPENET), 1.0)
+
+
+def test_untransform_takes_points_back_through_a_rigid_transform_as_its_inverse_does():
+    rng = np.random.default_rng(4)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.3, -1.1, 0.7]).as_matrix()
+    T[:3, 3] = [0.05, -0.2, 0.8]
+    points = rng.normal(size=(50, 3)) * 0.1
+    assert np.allclose(g.untransform(T, g.transform(T, points)), points, atol=1e-12)
+    assert np.allclose(g.untransform(T, points), g.transform(g.invert(T), points), atol=1e-12)
+    # float32 points (a depth crop) come back as float64
+    assert g.untransform(T, points.astype(np.float32)).dtype == np.float64

@@ -43,6 +43,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from evaluate.geometry import untransform
+
 from .symmetry import fit_symmetry_axis
 
 #: spins (degrees) tried about the axis: a grid, the frame's own pose in the middle
@@ -131,7 +133,7 @@ class ColourSpinCheck:
         points, _ = self.tracker.crop(frame_id, pose, margin=0.0)
         if len(points) > MAX_CHECK_POINTS:
             points = points[:: int(np.ceil(len(points) / MAX_CHECK_POINTS))]
-        return (points - pose[:3, 3]) @ pose[:3, :3]
+        return untransform(pose, points)
 
     def _colours(self, frame_id: str, points_cam: np.ndarray) -> np.ndarray:
         store = self.tracker.store
@@ -146,7 +148,7 @@ class ColourSpinCheck:
         points, _ = self.tracker.store.crop(frame_id, pose, self.tracker.box, 0.0, None)
         if len(points) > MAX_COLOUR_PIXELS:
             points = points[:: int(np.ceil(len(points) / MAX_COLOUR_PIXELS))]
-        return (points - pose[:3, 3]) @ pose[:3, :3], chromaticity(self._colours(frame_id, points))
+        return untransform(pose, points), chromaticity(self._colours(frame_id, points))
 
     def free_spin(self, local: np.ndarray) -> bool:
         """Whether spinning the frame by +-FREE_SPIN_DEG keeps its geometric fitness (the geometry leaves the spin free)."""

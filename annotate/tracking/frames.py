@@ -7,6 +7,7 @@ from collections import OrderedDict
 import numpy as np
 import open3d as o3d
 
+from evaluate.geometry import untransform
 from sequences.errors import InputError
 from sequences.reader import Sequence
 
@@ -95,7 +96,7 @@ class FrameStore:
         vv, uu = np.nonzero((patch >= near) & (patch <= far))
         z = patch[vv, uu].astype(np.float64)
         points = np.stack([((uu + u0) * s - camera.cx) / camera.fx * z, ((vv + v0) * s - camera.cy) / camera.fy * z, z], axis=1)
-        local = np.abs((points - pose[:3, 3]) @ pose[:3, :3])
+        local = np.abs(untransform(pose, points))
         keep = (local[:, 0] <= half[0]) & (local[:, 1] <= half[1]) & (local[:, 2] <= half[2])
         points = points[keep]
         colors = color[v0:v1, u0:u1][vv[keep], uu[keep]].astype(np.float64) if color is not None else None

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from evaluate.geometry import untransform
+
 
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray, symmetric: bool = False) -> float:
     """Angle between two rotations (3x3), degrees; with ``symmetric`` the angle between their y axes."""
@@ -46,7 +48,7 @@ def in_box_share(points_cam: np.ndarray, pose: np.ndarray, extents: np.ndarray) 
     """Share of camera-frame points (N, 3) inside the box at ``pose`` with full sides ``extents``; 0 when empty."""
     if len(points_cam) == 0:
         return 0.0
-    local = (np.asarray(points_cam) - pose[:3, 3]) @ pose[:3, :3]
+    local = untransform(pose, points_cam)
     return float(np.mean(np.all(np.abs(local) <= np.asarray(extents) / 2, axis=1)))
 
 

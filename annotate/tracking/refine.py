@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from evaluate.geometry import invert
+from evaluate.geometry import invert, untransform
 
 from .consistency import rotation_jumps
 from .freespace import free_space_votes
@@ -286,7 +286,7 @@ def _fitness_pair(tracker: Tracker, frame_id: str, pose_a: np.ndarray, pose_b: n
     distance = tracker.config.registration.quality_distance
     out = []
     for pose in (pose_a, pose_b):
-        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        local = untransform(pose, points)
         d, _ = target.tree().query(local, distance_upper_bound=distance)
         out.append(float(np.mean(np.isfinite(d))))
     return out[0], out[1]
@@ -473,7 +473,7 @@ def smooth_refined(
             continue
         pose = results[frame_id].pose
         points, _ = tracker.crop(frame_id, pose, margin=0.0)
-        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        local = untransform(pose, points)
         information.append(registration_information(local, target, config.registration.fine_distance, config.information_sigma))
     priors = {}
     placed = {m: P for m, P in (placed or {}).items() if m in results and results[m].ok}

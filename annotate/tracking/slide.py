@@ -35,6 +35,8 @@ from typing import Callable
 
 import numpy as np
 
+from evaluate.geometry import untransform
+
 from .registration import ModelTarget
 from .smooth import registration_information
 from .tracker import FrameResult, Tracker
@@ -116,7 +118,7 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
             return None
         if config.max_points and len(points) > config.max_points:
             points = points[:: int(np.ceil(len(points) / config.max_points))]
-        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        local = untransform(pose, points)
         direction, ratio = weak_direction(local, target, 2 * config.voxel_size, config.information_sigma)
         if ratio > config.max_slide_ratio:
             return None
@@ -124,7 +126,7 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
         wide, _ = tracker.crop(frame_id, pose, 0.75 * config.max_slide_m)
         if len(wide) > MAX_SEARCH_POINTS:
             wide = wide[:: int(np.ceil(len(wide) / MAX_SEARCH_POINTS))]
-        wide_local = (wide - pose[:3, 3]) @ pose[:3, :3]
+        wide_local = untransform(pose, wide)
         shift, fitness, at_zero, beyond = best_shift(wide_local, target, direction, config.max_slide_m, distance)
         # a best shift at the end of the range is no peak found (measured: with a +-6 cm range and no such rule, laptop
         # seed 2 frame 15 went 14 -> 75 mm), nor one on a plateau that only one edge bounds (the far edge hidden)
