@@ -47,6 +47,7 @@ class TrackingConfig:
     manual_rotation_sigma_deg: float = 1.0  #: how far a placed box's rotation is off, per axis: weighs the anchors' links (reconcile.chain_frame_offsets) and the smoothing's pull (0: the links alone, no pull)
     manual_translation_sigma: float = 0.002  #: how far a placed box's centre is off, per axis, m (both must be > 0 for the pull)
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
+    body_axis_snap: bool = True  #: near-round objects without symmetry (a mug): turn the box's y onto the body's axis fitted to the model, about the box centre
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
     threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
     workers: int = 0  #: processes for independent work (workers.py; 0: the cores available, at most 4; 1: none): the same results for any count
