@@ -157,8 +157,11 @@ class ColourSpinCheck:
         return all(self._fitness(self._spun(local, d)) >= own - SPIN_FIT_MARGIN for d in (FREE_SPIN_DEG, -FREE_SPIN_DEG))
 
     def spin_free_at(self, frame_id: str, pose: np.ndarray) -> bool:
-        """Whether the frame at ``pose`` (4x4, the model's object frame) leaves its spin free (:meth:`free_spin`)."""
-        local = self._local(frame_id, pose)
+        """Whether the frame at ``pose`` (4x4, the model's object frame) leaves its spin free (:meth:`_free`)."""
+        return self._free(self._local(frame_id, pose))
+
+    def _free(self, local: np.ndarray) -> bool:
+        """Whether a frame's object-frame voxel points are enough to judge and leave the spin free (:meth:`free_spin`)."""
         return len(local) >= self.tracker.config.min_points // 4 and self.free_spin(local)
 
     def _fitness(self, local: np.ndarray) -> float:
@@ -175,7 +178,7 @@ class ColourSpinCheck:
         if not self.round():
             return {}
         local = {f: self._local(f, P) for f, P in poses.items()}
-        free = [f for f, q in local.items() if len(q) >= config.min_points // 4 and self.free_spin(q)]
+        free = [f for f, q in local.items() if self._free(q)]
         fixed = [f for f in poses if f not in set(free) and fitness.get(f, 0.0) >= config.min_fitness and len(local[f])]
         if not free or len(fixed) < 3:
             return {}

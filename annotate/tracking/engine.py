@@ -157,8 +157,9 @@ def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
     return [f for f in ids if f in annotation.frames]
 
 
-def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> np.ndarray | None:
-    """Correction (4x4) putting the box's y on the symmetry axis estimated from the model, or None if unreliable."""
+def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The axis (unit direction, point; object frame) fitted to the model of ``poses``, or None where the fit is
+    unreliable: too ill-conditioned, or more than 10 deg off the box's y."""
     model = build_model(tracker, poses, tracker.config.max_global_frames, anchors)
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
@@ -166,27 +167,31 @@ def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: lis
     except ValueError:
         return None
     if conditioning > tracker.config.max_axis_conditioning:
-        return None  # the shape does not pin the axis down (a shallow bowl): the placed boxes' mean tilt is better
-    # a large correction means the fit went wrong (a hand, a partial view), not that the boxes are 10 deg off
-    if np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0 or np.linalg.norm(point) > 0.25 * np.max(tracker.extents):
+        # the shape does not pin the axis down (a shallow bowl): the placed boxes' mean tilt is better; for a mug's
+        # body measured so too (v5 seed 0, 3 manual frames off by up to 3 deg: conditioning 0.25, median 1.26 ->
+        # 1.71 deg when snapped past this gate)
         return None
-    return snap_upright(np.eye(4), axis, point)
+    # a large correction means the fit went wrong (a hand, a partial view), not that the boxes are 10 deg off
+    if np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0:
+        return None
+    return axis, point
+
+
+def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> np.ndarray | None:
+    """Correction (4x4) putting the box's y on the symmetry axis estimated from the model, or None if unreliable."""
+    fitted = _model_axis(tracker, poses, anchors)
+    if fitted is None or np.linalg.norm(fitted[1]) > 0.25 * np.max(tracker.extents):
+        return None
+    return snap_upright(np.eye(4), *fitted)
 
 
 def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> np.ndarray | None:
     """Correction (4x4, a rotation about the box centre) turning the box's y onto the axis of a near-round body
     fitted to the model (a mug's body: its handle an outlier to the fit), or None if unreliable."""
-    model = build_model(tracker, poses, tracker.config.max_global_frames, anchors)
-    points, _ = model.points(min_hits_for(model, tracker.config))
-    try:
-        axis, point, _, conditioning = fit_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
-    except ValueError:
+    fitted = _model_axis(tracker, poses, anchors)
+    if fitted is None:
         return None
-    # the gate of the symmetric objects' snap: above it, measured worse (v5 mug seed 0, 3 manual frames off by up to
-    # 3 deg: conditioning 0.25, median 1.26 -> 1.71 deg); a large correction means a bad fit, not boxes 10 deg off
-    if conditioning > tracker.config.max_axis_conditioning or np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0:
-        return None
-    snap = snap_upright(np.eye(4), axis, point)
+    snap = snap_upright(np.eye(4), *fitted)
     snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): it stays where it is
     return snap
 
