@@ -49,6 +49,10 @@ class TrackingConfig:
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
     body_axis_snap: bool = True  #: near-round objects without symmetry (a mug): turn the box's y onto the body's axis fitted to the model, about the box centre
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
+    face_snap: bool = True  #: box-like objects (a camera): turn the box onto the model's faces, about its centre (faces.py)
+    min_face_share: float = 0.05  #: ... when each axis holds at least this share of the model's normals (a laptop's thin sides: 0.3-0.6 %)
+    min_faces_total: float = 0.5  #: ... and all six faces together at least this share (cameras 0.67-0.75; a mug's round side leaves 0.18-0.32)
+    max_face_snap_deg: float = 5.0  #: ... and the turn is at most this (a larger one means the faces are not the frame's)
     threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
     workers: int = 0  #: processes for independent work (workers.py; 0: the cores available, at most 4; 1: none): the same results for any count
     update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)

@@ -80,6 +80,7 @@ from .quality import document_figures, in_box_share, pose_difference
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
+from .faces import box_like, face_rotation
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model
 from .slide import against_the_motion, shifted, slide_corrections
@@ -157,10 +158,10 @@ def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
     return [f for f in ids if f in annotation.frames]
 
 
-def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
-    """The axis (unit direction, point; object frame) fitted to the model of ``poses``, or None where the fit is
-    unreliable: too ill-conditioned, or more than 10 deg off the box's y."""
-    model = build_model(tracker, poses, tracker.config.max_global_frames, anchors)
+def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The axis (unit direction, point; object frame) fitted to the model of ``poses`` (``model``, where built
+    already), or None where the fit is unreliable: too ill-conditioned, or more than 10 deg off the box's y."""
+    model = model or build_model(tracker, poses, tracker.config.max_global_frames, anchors)
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
         axis, point, _, conditioning = fit_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
@@ -185,14 +186,31 @@ def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: lis
     return snap_upright(np.eye(4), *fitted)
 
 
-def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> np.ndarray | None:
+def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
     """Correction (4x4, a rotation about the box centre) turning the box's y onto the axis of a near-round body
     fitted to the model (a mug's body: its handle an outlier to the fit), or None if unreliable."""
-    fitted = _model_axis(tracker, poses, anchors)
+    fitted = _model_axis(tracker, poses, anchors, model)
     if fitted is None:
         return None
     snap = snap_upright(np.eye(4), *fitted)
     snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): it stays where it is
+    return snap
+
+
+def _snap_faces(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
+    """Correction (4x4, a rotation about the box centre) turning the box onto the faces of the model of ``poses``
+    (``model``, where built already; faces.py), or None where the model is not box-like or the turn exceeds
+    ``max_face_snap_deg``."""
+    config = tracker.config
+    model = model or build_model(tracker, poses, config.max_global_frames, anchors)
+    normals = np.asarray(model.target(min_hits_for(model, config)).cloud.normals)
+    rotation, counts = face_rotation(normals)
+    if rotation is None or not box_like(counts, len(normals), config.min_face_share, config.min_faces_total):
+        return None
+    if np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1, 1))) > config.max_face_snap_deg:
+        return None
+    snap = np.eye(4)
+    snap[:3, :3] = rotation.T  # the normals n turn to rotation @ n: the object frame turns by its inverse
     return snap
 
 
@@ -399,11 +417,16 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         snap = _snap_symmetric(tracker, poses, anchors)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
-    elif nearly_round and config.body_axis_snap:
-        # the placed boxes' mean tilt is off by their errors' mean (1-1.7 deg); the body's axis, fitted to the
-        # model, is not (v5 mugs, seeds 1-7, 4 manual frames off by up to 3 deg: medians 1.37, 1.00, 1.00, 1.82,
-        # 1.20, 1.49, 1.66 -> 1.11, 0.85, 1.08, 1.72, 0.89, 1.34, 1.02 deg; seed 0 and 3 manual frames: refused)
-        snap = _snap_body_axis(tracker, poses, anchors)
+    elif not symmetric and (config.face_snap or (nearly_round and config.body_axis_snap)):
+        model = build_model(tracker, poses, config.max_global_frames, anchors)
+        # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;
+        # cameras pass the roundness test too, so the faces are asked first)
+        snap = _snap_faces(tracker, poses, anchors, model) if config.face_snap else None
+        if snap is None and nearly_round and config.body_axis_snap:
+            # the placed boxes' mean tilt is off by their errors' mean (1-1.7 deg); the body's axis, fitted to the
+            # model, is not (v5 mugs, seeds 1-7, 4 manual frames off by up to 3 deg: medians 1.37, 1.00, 1.00, 1.82,
+            # 1.20, 1.49, 1.66 -> 1.11, 0.85, 1.08, 1.72, 0.89, 1.34, 1.02 deg; seed 0 and 3 manual frames: refused)
+            snap = _snap_body_axis(tracker, poses, anchors, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
 
