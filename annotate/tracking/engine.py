@@ -161,7 +161,7 @@ def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
 def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """The axis (unit direction, point; object frame) fitted to the model of ``poses`` (``model``, where built
     already), or None where the fit is unreliable: too ill-conditioned, or more than 10 deg off the box's y."""
-    model = model or build_model(tracker, poses, tracker.config.max_global_frames, anchors)
+    model = model if model is not None else build_model(tracker, poses, tracker.config.max_global_frames, anchors)
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
         axis, point, _, conditioning = fit_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
@@ -202,7 +202,7 @@ def _snap_faces(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[st
     (``model``, where built already; faces.py), or None where the model is not box-like or the turn exceeds
     ``max_face_snap_deg``."""
     config = tracker.config
-    model = model or build_model(tracker, poses, config.max_global_frames, anchors)
+    model = model if model is not None else build_model(tracker, poses, config.max_global_frames, anchors)
     normals = np.asarray(model.target(min_hits_for(model, config)).cloud.normals)
     rotation, counts = face_rotation(normals)
     if rotation is None or not box_like(counts, len(normals), config.min_face_share, config.min_faces_total):
