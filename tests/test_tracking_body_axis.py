@@ -5,13 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence
+from test_tracking_render import mug_mesh, render_sequence, render_tracker
 
-from annotate.tracking import TrackingConfig
-from annotate.tracking.config import scaled_to
 from annotate.tracking.engine import _snap_body_axis
-from annotate.tracking.frames import FrameStore
-from annotate.tracking.tracker import Tracker
 from sequences.reader import open_sequence
 
 FRAMES = 16
@@ -24,11 +20,6 @@ def scene(tmp_path_factory):
     truth = render_sequence(root, mesh, frames=FRAMES, seed=5, hand=False)
     return open_sequence(root), mesh, truth
 
-
-def _tracker(scene, **settings) -> Tracker:
-    sequence, mesh, _ = scene
-    config = scaled_to(TrackingConfig(**settings), mesh.extents)
-    return Tracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
 
 
 def _tilted(deg: float) -> np.ndarray:
@@ -43,7 +34,7 @@ def test_boxes_tilted_off_the_body_axis_are_turned_back_about_their_centre(scene
     ids = sorted(truth)
     # every box tilted 3 deg (as the placed boxes' mean error leaves it): the model's body axis is off their y
     poses = {f: truth[f] @ _tilted(3.0) for f in ids}
-    snap = _snap_body_axis(_tracker(scene), poses, [ids[0], ids[-1]])
+    snap = _snap_body_axis(render_tracker(*scene[:2]), poses, [ids[0], ids[-1]])
     assert snap is not None
     assert np.array_equal(snap[:3, 3], np.zeros(3)), "the centre stays: the handle keeps it off the body's axis"
     # measured: 0.20 deg from the true tilt left, against 3 before
@@ -57,4 +48,4 @@ def test_no_snap_where_the_axis_fit_is_too_ill_conditioned(scene):
     _, _, truth = scene
     ids = sorted(truth)
     # a conditioning limit of 0 refuses every fit (a shallow bowl's, or a mug's whose handle dominates)
-    assert _snap_body_axis(_tracker(scene, max_axis_conditioning=0.0), dict(truth), [ids[0]]) is None
+    assert _snap_body_axis(render_tracker(*scene[:2], max_axis_conditioning=0.0), dict(truth), [ids[0]]) is None

@@ -6,14 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import render_sequence
+from test_tracking_render import render_sequence, render_tracker
 
 from annotate.tracking import TrackingConfig
-from annotate.tracking.config import scaled_to
 from annotate.tracking.engine import _snap_faces
 from annotate.tracking.faces import box_like, face_rotation
-from annotate.tracking.frames import FrameStore
-from annotate.tracking.tracker import Tracker
 from sequences.reader import open_sequence
 from sequences.synth.shapes import procedural_mesh
 
@@ -83,8 +80,7 @@ def camera_scene(tmp_path_factory):
 @pytest.mark.slow
 def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(camera_scene):
     sequence, mesh, truth = camera_scene
-    config = scaled_to(TrackingConfig(), mesh.extents)
-    tracker = Tracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
+    tracker = render_tracker(sequence, mesh)
     ids = sorted(truth)
     tilt = np.eye(4)
     tilt[:3, :3] = Rotation.from_rotvec(np.radians(2.5) * np.array([0.6, 0.0, 0.8])).as_matrix()
@@ -97,5 +93,4 @@ def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(camera_scen
     # faces, and the model's normals lean over their edges within the 10 deg cones (0.11 deg with 4 deg cones)
     assert max(left) < 0.8, left
     # a turn beyond max_face_snap_deg is not the placed boxes' error: refused
-    strict = Tracker(tracker.store, mesh.extents, False, scaled_to(TrackingConfig(max_face_snap_deg=1.0), mesh.extents))
-    assert _snap_faces(strict, poses, [ids[0]]) is None
+    assert _snap_faces(render_tracker(sequence, mesh, max_face_snap_deg=1.0), poses, [ids[0]]) is None

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence
+from test_tracking_render import mug_mesh, render_sequence, render_tracker
 
 from annotate.tracking import TrackingConfig
 from annotate.tracking.config import scaled_to
@@ -25,11 +25,6 @@ def scene(tmp_path_factory):
     truth = render_sequence(root, mesh, frames=FRAMES, seed=3, hand=False)
     return open_sequence(root), mesh, truth
 
-
-def _tracker(scene, **settings) -> Tracker:
-    sequence, mesh, _ = scene
-    config = scaled_to(TrackingConfig(**settings), mesh.extents)
-    return Tracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
 
 
 def _spun(deg: float) -> np.ndarray:
@@ -50,7 +45,7 @@ def test_the_coarse_round_merges_two_stretches_that_each_fit_their_own_handle(sc
     # the first half spun +3 deg, the second -3 deg about the axis: the model of all frames holds two handles 6 deg
     # (about 4 mm at the handle) apart, and each half fits its own
     start = {f: FrameResult(truth[f] @ _spun(3.0 if k < FRAMES // 2 else -3.0), True, {}) for k, f in enumerate(ids)}
-    tracker = _tracker(scene)
+    tracker = render_tracker(*scene[:2])
     anchors = [ids[0], ids[-1]]
 
     def gap(results):
@@ -73,13 +68,13 @@ def test_the_coarse_round_turns_down_a_move_beyond_its_step_limits_and_keeps_the
     far, near = ids[5], ids[15]
     turns = {far: 8.0, near: 3.0}
     start = {f: FrameResult(truth[f] @ _spun(turns.get(f, 0.0)), True, {"fitness": 0.9}) for f in ids}
-    out = coarse_round(_tracker(scene), start, [ids[0], ids[-1]])
+    out = coarse_round(render_tracker(*scene[:2]), start, [ids[0], ids[-1]])
     assert np.array_equal(out[far].pose, start[far].pose)  # 8 deg > coarse_step_deg: kept, whatever the fit
     # 3 deg is within the limits: the frame is pulled back towards the others (the round does move frames)
     assert abs(_spin_errors(truth, {near: out[near]})[0]) < 1.5
     assert all(out[f].figures == {"fitness": 0.9} and out[f].ok for f in ids)
     # a model twice as coarse at the default limits; with the round switched off, nothing moves
-    off = coarse_round(_tracker(scene, coarse_voxel_factor=1.0), start, [ids[0], ids[-1]])
+    off = coarse_round(render_tracker(*scene[:2], coarse_voxel_factor=1.0), start, [ids[0], ids[-1]])
     assert all(off[f] is start[f] for f in ids)
 
 

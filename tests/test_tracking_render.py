@@ -14,7 +14,18 @@ import trimesh
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from annotate.tracking import TrackingConfig
+from annotate.tracking.config import scaled_to
+from annotate.tracking.frames import FrameStore
+from annotate.tracking.tracker import Tracker
 from sequences.camera import Camera
+
+
+def render_tracker(sequence, mesh: trimesh.Trimesh, **settings) -> Tracker:
+    """A tracker of a rendered ``sequence`` of ``mesh`` (no colours, no symmetry), ``settings`` on TrackingConfig
+    and the whole configuration scaled to the mesh's size."""
+    config = scaled_to(TrackingConfig(**settings), mesh.extents)
+    return Tracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
 
 
 def _o3d_mesh(mesh: trimesh.Trimesh) -> o3d.t.geometry.TriangleMesh:

@@ -6,15 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence
+from test_tracking_render import mug_mesh, render_sequence, render_tracker
 
-from annotate.tracking import TrackingConfig
 from annotate.tracking.colour_spin import spin_matrix
-from annotate.tracking.config import scaled_to
-from annotate.tracking.frames import FrameStore
 from annotate.tracking.refine import refine_all
 from annotate.tracking.stretch_spin import stretch_spins
-from annotate.tracking.tracker import FrameResult, Tracker
+from annotate.tracking.tracker import FrameResult
 from sequences.reader import open_sequence
 
 FRAMES = 24
@@ -32,11 +29,6 @@ def scene(tmp_path_factory):
     return open_sequence(root), mesh, truth, body_centre
 
 
-def _tracker(scene) -> Tracker:
-    sequence, mesh, _, _ = scene
-    config = scaled_to(TrackingConfig(), mesh.extents)
-    return Tracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
-
 
 def _spin_errors(truth: dict, results: dict) -> np.ndarray:
     """Per frame, the spin (deg) about the mug's axis of the pose against the truth."""
@@ -47,7 +39,7 @@ def _spin_errors(truth: dict, results: dict) -> np.ndarray:
 def test_a_block_turned_about_the_axis_that_holds_itself_in_the_model_of_all_frames_is_turned_back(scene):
     _, _, truth, centre = scene
     ids = sorted(truth)
-    tracker = _tracker(scene)
+    tracker = render_tracker(*scene[:2])
     off = ids[:6]
     start = {f: FrameResult(truth[f] @ spin_matrix(AXIS, centre, 4.0 if f in off else 0.0), True, {"fitness": 0.9}) for f in ids}
     # two rounds of the joint refinement leave the block where it mostly is: its frames fit their own copy of the
@@ -69,7 +61,7 @@ def test_frames_at_their_true_poses_are_not_turned(scene):
     _, _, truth, centre = scene
     ids = sorted(truth)
     start = {f: FrameResult(truth[f], True, {"fitness": 0.9}) for f in ids}
-    out, turned = stretch_spins(_tracker(scene), start, AXIS, centre, block=6, margin=4)
+    out, turned = stretch_spins(render_tracker(*scene[:2]), start, AXIS, centre, block=6, margin=4)
     assert turned == {}
     assert all(np.array_equal(out[f].pose, truth[f]) for f in ids)
 
@@ -79,5 +71,5 @@ def test_a_block_whose_model_would_hold_too_few_frames_is_left_alone(scene):
     ids = sorted(truth)
     start = {f: FrameResult(truth[f] @ spin_matrix(AXIS, centre, 5.0), True, {}) for f in ids}
     # blocks of 12 with 12 frames either side leave nothing to register to
-    out, turned = stretch_spins(_tracker(scene), start, AXIS, centre, block=12, margin=12)
+    out, turned = stretch_spins(render_tracker(*scene[:2]), start, AXIS, centre, block=12, margin=12)
     assert turned == {} and all(out[f] is start[f] for f in ids)

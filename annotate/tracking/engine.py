@@ -76,7 +76,7 @@ from .config import TrackingConfig, scaled_to
 from .consistency import chain_departures, flagged_gaps, free_spin_runs, rotation_jumps
 from .frames import FrameStore
 from .propagate import run_chain
-from .quality import document_figures, in_box_share, pose_difference
+from .quality import document_figures, in_box_share, pose_difference, rotation_angle_deg
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
@@ -207,7 +207,7 @@ def _snap_faces(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[st
     rotation, counts = face_rotation(normals)
     if rotation is None or not box_like(counts, len(normals), config.min_face_share, config.min_faces_total):
         return None
-    if np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1, 1))) > config.max_face_snap_deg:
+    if rotation_angle_deg(np.eye(3), rotation) > config.max_face_snap_deg:
         return None
     snap = np.eye(4)
     snap[:3, :3] = rotation.T  # the normals n turn to rotation @ n: the object frame turns by its inverse
