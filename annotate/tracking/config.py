@@ -53,6 +53,9 @@ class TrackingConfig:
     min_face_share: float = 0.05  #: ... when each axis holds at least this share of the model's normals (a laptop's thin sides: 0.3-0.6 %)
     min_faces_total: float = 0.5  #: ... and all six faces together at least this share (cameras 0.67-0.75; a mug's round side leaves 0.18-0.32)
     max_face_snap_deg: float = 5.0  #: ... and the turn is at most this (a larger one means the faces are not the frame's)
+    flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
+    flat_cone_deg: float = 5.0  #: ... those within this of +-y
+    min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals
     threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
     workers: int = 0  #: processes for independent work (workers.py; 0: the cores available, at most 4; 1: none): the same results for any count
     update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)

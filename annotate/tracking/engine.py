@@ -35,7 +35,8 @@
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
-   undetermined (a shallow bowl: nearly a sphere), where the placed boxes' mean tilt is kept;
+   undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
+   of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
@@ -80,7 +81,7 @@ from .quality import document_figures, in_box_share, pose_difference, rotation_a
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
-from .faces import box_like, face_rotation
+from .faces import box_like, face_rotation, tilt_onto_axis
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model
 from .slide import against_the_motion, shifted, slide_corrections
@@ -178,12 +179,28 @@ def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[st
     return axis, point
 
 
-def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str]) -> np.ndarray | None:
+def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
     """Correction (4x4) putting the box's y on the symmetry axis estimated from the model, or None if unreliable."""
-    fitted = _model_axis(tracker, poses, anchors)
+    fitted = _model_axis(tracker, poses, anchors, model)
     if fitted is None or np.linalg.norm(fitted[1]) > 0.25 * np.max(tracker.extents):
         return None
     return snap_upright(np.eye(4), *fitted)
+
+
+def _snap_flat(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
+    """Correction (4x4, a rotation about the box centre) turning the box's y onto the normals of the model's faces
+    across the axis (a bowl's foot; faces.tilt_onto_axis), or None where too few normals lie near y or the turn
+    exceeds ``max_face_snap_deg``."""
+    config = tracker.config
+    normals = np.asarray(model.target(min_hits_for(model, config)).cloud.normals)
+    rotation, count = tilt_onto_axis(normals, config.flat_cone_deg)
+    if rotation is None or count < config.min_flat_share * len(normals):
+        return None
+    if rotation_angle_deg(np.eye(3), rotation) > config.max_face_snap_deg:
+        return None
+    snap = np.eye(4)
+    snap[:3, :3] = rotation.T
+    return snap
 
 
 def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
@@ -414,7 +431,12 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric)
     poses = {f: p @ correction for f, p in poses.items()}
     if symmetric and config.symmetry_snap:
-        snap = _snap_symmetric(tracker, poses, anchors)
+        model = build_model(tracker, poses, config.max_global_frames, anchors)
+        snap = _snap_symmetric(tracker, poses, anchors, model)
+        if snap is None and config.flat_snap:
+            # the axis fit is refused (a shallow bowl: nearly a sphere): its foot and inner bottom still face along
+            # the axis, which the placed boxes' mean tilt does not (faces.tilt_onto_axis)
+            snap = _snap_flat(tracker, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
     elif not symmetric and (config.face_snap or (nearly_round and config.body_axis_snap)):

@@ -391,6 +391,16 @@ def reregister_suspects(tracker: Tracker, results: dict[str, FrameResult], model
     median / p90 1.42 / 2.41 -> 1.24 / 2.05 deg; mug seed 3 p90 2.08 -> 2.36 deg; laptop seed 1 F@5mm 0.828 ->
     0.834; the camera, can and bottle sequences have no such frames and are unchanged. Sums over the 24 sequences:
     rotation median 20.39 -> 20.08, p90 40.07 -> 36.48 deg, centre 41.38 -> 41.32 mm.
+
+    Where the spin is free it also moves frames the smoothing had right: mug seed 3's frames 6-14 came out of the
+    smoothing within 2.2 deg and were turned 4-11 deg about the axis, with 4-9 mm along it. Measured and not kept
+    (mugs, seeds 0-3, same setting), because mug seed 2's frames 35-54 need the same kind of move (the smoothing
+    carried them 8-10 deg off from neighbours that were, and the move of 4-12 deg and 4-10 mm brings them back):
+    - keeping the move only where the fitness of the same points rises by 0.02: seed 3 p90 3.60 -> 2.58 deg, seed 2
+      2.98 -> 6.60 (the fitness rises by under 0.01 in both);
+    - keeping the smoothed pose along the directions the move's information leaves weak (eigenvalues under 5 % of
+      the strongest, rotation scaled by half the largest extent; the spin's ratio is 0.006-0.04 in both seeds):
+      seed 3 p90 3.60 -> 3.25, seed 2 2.98 -> 7.60.
     """
     config = tracker.config
     todo = [f for f, r in results.items() if f not in skip and r.ok and suspect(r, config)]

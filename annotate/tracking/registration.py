@@ -40,7 +40,10 @@ round by that test too, failed 2 goal checks with it against 1 without); its joi
 Measured and not kept: ``colored`` as the default (v5 seed 0: mug 1.29/3.82 -> 1.58/4.03 deg
 median/p90, laptop 98 -> 681 ms per frame; seed 1 mug p90 67.5 deg), and, in an earlier form of the
 facing test (frame normals estimated, an opposite-facing nearest point replaced by the nearest facing
-candidate), the laptop of seed 1 went from 1.54 to 31-178 deg p90 at 202-227 ms per frame.
+candidate), the laptop of seed 1 went from 1.54 to 31-178 deg p90 at 202-227 ms per frame. ``colored`` on the
+v5 laptops of seeds 1 and 2 (whole pipeline): centre medians 3.81 / 3.12 -> 9.18 / 4.00 mm at 292 / 453 ms per
+frame; and as a last step for laptop seed 1's frames 41-84 (4 mm off in y), each registered with colour to the
+model of the other frames: frames 50-78 jumped 16-20 mm in y, to the next of the label's stripes.
 """
 
 from __future__ import annotations
