@@ -56,6 +56,11 @@ class TrackingConfig:
     flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
     flat_cone_deg: float = 5.0  #: ... those within this of +-y
     min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals
+    frame_tilt: bool = True  #: ... and then every frame's tilt measured from its own normals near y (tilt.py)
+    min_tilt_normals: int = 20  #: ... where at least this many of a frame's normals lie within flat_cone_deg of y
+    max_frame_tilt_deg: float = 6.0  #: ... and they turn it at most this far
+    tilt_window: int = 6  #: ... the median of the tilts measured within this many frames either side
+    min_tilt_frames: int = 3  #: ... where at least this many frames there measure one
     threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
     workers: int = 0  #: processes for independent work (workers.py; 0: the cores available, at most 4; 1: none): the same results for any count
     update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)

@@ -36,7 +36,8 @@
    placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
-   of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis);
+   of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), and then each frame onto
+   the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
@@ -87,6 +88,7 @@ from .refine import build_model, coarse_round, min_hits_for, recheck_disagreemen
 from .slide import against_the_motion, shifted, slide_corrections
 from .stretch_spin import stretch_spins
 from .symmetry import fit_symmetry_axis, snap_upright
+from .tilt import frame_tilts, untilted, windowed_tilts
 from .tracker import FrameResult, Tracker
 from .workers import ordered_map
 
@@ -433,12 +435,17 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     if symmetric and config.symmetry_snap:
         model = build_model(tracker, poses, config.max_global_frames, anchors)
         snap = _snap_symmetric(tracker, poses, anchors, model)
-        if snap is None and config.flat_snap:
+        nearly_sphere = snap is None
+        if nearly_sphere and config.flat_snap:
             # the axis fit is refused (a shallow bowl: nearly a sphere): its foot and inner bottom still face along
             # the axis, which the placed boxes' mean tilt does not (faces.tilt_onto_axis)
             snap = _snap_flat(tracker, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
+        if nearly_sphere and config.flat_snap and config.frame_tilt:
+            # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py)
+            tilts = windowed_tilts(ids, frame_tilts(tracker, poses), config.tilt_window, config.min_tilt_frames)
+            poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
     elif not symmetric and (config.face_snap or (nearly_round and config.body_axis_snap)):
         model = build_model(tracker, poses, config.max_global_frames, anchors)
         # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;

@@ -1,0 +1,98 @@
+"""A nearly spherical symmetric object's tilt, frame by frame, from its faces across the axis (a shallow bowl).
+
+A shallow bowl is close to a sphere: a frame's points pin its tilt (the direction of its axis) only through the
+few flat faces across the axis, its foot and its inner bottom, which point-to-plane registration weighs no more
+than the curved wall. The axis fit to the model is refused for such a shape (engine._model_axis), so every frame
+keeps the tilt the chains and the smoothing gave it, off by 2-4 deg over whole stretches (v5 bowl seed 1, 3 manual
+frames). A frame that sees a flat face measures its tilt directly: the normals of its own points within
+``cone_deg`` of the object's y are turned onto y (faces.tilt_onto_axis, about x and z only; the spin is free).
+One frame's normals are noisy (a few hundred, estimated from 1-2 mm depth noise), so each frame takes the median
+of the tilts measured within ``half_window`` frames of it, where there are at least ``min_count`` of them (a guard
+against one frame's noise; on the v5 bowls it moved no median by more than 0.04 deg): a hand-held bowl's tilt
+error changes slowly.
+
+Measured on the v5 bowls (bench_tracking, rotation median / p90, deg), against the model-based snap alone
+(faces.tilt_onto_axis on the model), with 5 deg cones, 20 normals at least, +-6 frames and 3 measured in them:
+- 4 manual frames off by up to 3 deg / 5 mm / 8 %, seeds 0-3: 0.77/1.49, 1.10/1.92, 0.64/1.32, 0.94/1.76 ->
+  0.26/0.63, 0.49/1.41, 0.35/0.69, 0.51/1.08; unseen seeds 4-7: 0.92/1.53, 0.52/0.71, 0.52/1.05, 1.62/5.21 ->
+  0.26/0.64, 0.27/0.49, 0.41/0.87, 0.46/2.55;
+- 3 manual frames off by up to 3 deg: 0.68/1.60, 2.19/3.71, 0.50/1.07, 0.75/3.00 -> 0.50/1.56, 0.94/3.28,
+  0.32/0.86, 0.67/2.11; off by up to 5 deg: 0.90/2.36, 2.70/4.57, 0.49/0.99, 1.62/3.75 -> 0.44/4.37, 1.57/3.69,
+  0.37/1.12, 1.07/4.21 (seed 0's frames 89-96 were the chains' sheared poses, propagate.predict, fixed since:
+  0.40/0.98 with both).
+Sums over the 16 runs: medians 16.9 -> 8.9 deg, p90s 36.0 -> 29.6 deg; failing bowl checks 10 -> 7. Post hoc on the
+same poses (medians / p90s summed, deg): 32 neighbours per normal 8.6 / 25.6, 16 9.9 / 26.1, 64 9.2 / 27.1; with
+16, cones of 4 and 7 deg 11.0 / 27.4 and 9.4 / 26.0, 40 normals 10.2 / 28.4, windows of +-4 and +-8 frames 9.9 /
+26.6 and 10.2 / 26.7.
+Not for cans and bottles, whose side pins the tilt in every frame and whose axis fit the engine accepts: there it
+made the p90s worse in 31 of 32 runs (can seed 1: 0.50 -> 3.99 deg).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial.transform import Rotation
+
+from evaluate.geometry import untransform
+
+from .faces import tilt_onto_axis
+from .tracker import Tracker
+
+
+def frame_tilt(points_obj: np.ndarray, normal_radius: float, cone_deg: float, min_normals: int, max_deg: float, max_nn: int = 32) -> np.ndarray | None:
+    """The rotation vector (3,; rad, object frame, about x and z) that turns the normals of a frame's points
+    ``points_obj`` (N, 3; object frame, m) lying within ``cone_deg`` of +-y onto y, or None where fewer than
+    ``min_normals`` lie there or the turn exceeds ``max_deg`` (a hand's palm, not a face of the object).
+
+    The frame's pose is corrected by ``pose @ tilt_matrix(-w)``: its object frame turns by the inverse.
+    """
+    points_obj = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
+    if len(points_obj) < min_normals:
+        return None
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_obj))
+    # normals from up to ``max_nn`` points within a few voxels: one frame's depth noise (1-2 mm on 4 mm voxels)
+    # spreads 16-point normals by several degrees, and the cone then keeps a lopsided share of them
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=max_nn))
+    rotation, _ = tilt_onto_axis(np.asarray(cloud.normals), cone_deg, min_points=min_normals)
+    if rotation is None:
+        return None
+    turn = Rotation.from_matrix(rotation).as_rotvec()
+    return turn if np.degrees(np.linalg.norm(turn)) <= max_deg else None
+
+
+def frame_tilts(tracker: Tracker, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per frame whose points measure it (:func:`frame_tilt`, with the tracker's configuration): its tilt (3,)."""
+    config = tracker.config
+    out = {}
+    for frame_id, pose in poses.items():  # one normal estimate per frame (a few hundred points each)
+        if frame_id in tracker.store.errors:
+            continue
+        points, _ = tracker.crop(frame_id, pose, margin=0.0)
+        tilt = frame_tilt(untransform(pose, points), 4 * config.voxel_size, config.flat_cone_deg, config.min_tilt_normals, config.max_frame_tilt_deg)
+        if tilt is not None:
+            out[frame_id] = tilt
+    return out
+
+
+def windowed_tilts(ids: list[str], tilts: dict[str, np.ndarray], half_window: int, min_count: int = 1) -> dict[str, np.ndarray]:
+    """Per frame of ``ids`` (in order) with at least ``min_count`` measured tilts within ``half_window`` frames:
+    the median (per component) of those tilts (3,; rad). Other frames keep their tilt (absent from the result)."""
+    measured = np.full((len(ids), 3), np.nan)
+    for i, frame_id in enumerate(ids):
+        if frame_id in tilts:
+            measured[i] = tilts[frame_id]
+    out = {}
+    for i, frame_id in enumerate(ids):
+        window = measured[max(0, i - half_window) : i + half_window + 1]
+        window = window[np.isfinite(window[:, 0])]
+        if len(window) >= max(min_count, 1):
+            out[frame_id] = np.median(window, axis=0)
+    return out
+
+
+def untilted(pose: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """``pose`` (4x4) with its object frame turned by the inverse of ``tilt`` (3,; rad) about the box centre."""
+    out = np.array(pose, dtype=np.float64, copy=True)
+    out[:3, :3] = out[:3, :3] @ Rotation.from_rotvec(tilt).as_matrix().T
+    return out
