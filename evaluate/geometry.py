@@ -51,6 +51,19 @@ def invert(T) -> np.ndarray:
     return out
 
 
+def rigid(T) -> np.ndarray:
+    """A 4x4 transform whose 3x3 block is the rotation nearest (Frobenius) that of ``T``; translation kept.
+
+    Products of rigid transforms drift off the rotations by rounding (1e-16 each); a recursion that inverts its
+    own output by transposing (a constant-velocity prediction) amplifies that drift instead of cancelling it.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, copy=True)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return out
+
+
 def transform(T, points) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points."""
     T = np.asarray(T, dtype=np.float64)

@@ -52,3 +52,20 @@ def test_untransform_takes_points_back_through_a_rigid_transform_as_its_inverse_
     assert np.allclose(g.untransform(T, points), g.transform(g.invert(T), points), atol=1e-12)
     # float32 points (a depth crop) come back as float64
     assert g.untransform(T, points.astype(np.float32)).dtype == np.float64
+
+
+def test_rigid_takes_the_rotation_of_the_polar_decomposition():
+    rng = np.random.default_rng(7)
+    R = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
+    A = rng.normal(size=(3, 3))
+    S = np.eye(3) + 0.05 * (A + A.T)  # symmetric, positive definite: a stretch and shear of the points
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R @ S, [0.1, -0.2, 0.7]
+    out = g.rigid(T)
+    np.testing.assert_allclose(out[:3, :3], R, atol=1e-12)  # R S = R (polar), nearest in Frobenius
+    np.testing.assert_array_equal(out[:3, 3], T[:3, 3])
+    np.testing.assert_array_equal(out[3], [0.0, 0.0, 0.0, 1.0])
+    # a rotation stays as it is (to rounding), and never becomes a reflection
+    np.testing.assert_allclose(g.rigid(g.pose_matrix([0, 0, 1], [0.1, 0.2, 0.3, 0.927]))[:3, :3],
+                               g.quat_to_matrix([0.1, 0.2, 0.3, 0.927]), atol=1e-14)
+    assert np.linalg.det(g.rigid(np.diag([1.0, 1.0, -1.0, 1.0]))[:3, :3]) > 0
