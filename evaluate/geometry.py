@@ -58,6 +58,8 @@ def rigid(T) -> np.ndarray:
     own output by transposing (a constant-velocity prediction) amplifies that drift instead of cancelling it.
     """
     T = np.asarray(T, dtype=np.float64)
+    if not np.all(np.isfinite(T[:3, :3])):
+        return np.array(T, copy=True)  # nothing to make rigid: a failed pose stays failed (SVD would raise)
     U, _, Vt = np.linalg.svd(T[:3, :3])
     out = np.array(T, copy=True)
     out[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt

@@ -69,3 +69,5 @@ def test_rigid_takes_the_rotation_of_the_polar_decomposition():
     np.testing.assert_allclose(g.rigid(g.pose_matrix([0, 0, 1], [0.1, 0.2, 0.3, 0.927]))[:3, :3],
                                g.quat_to_matrix([0.1, 0.2, 0.3, 0.927]), atol=1e-14)
     assert np.linalg.det(g.rigid(np.diag([1.0, 1.0, -1.0, 1.0]))[:3, :3]) > 0
+    # a failed (non-finite) pose stays as it is instead of raising
+    assert np.isnan(g.rigid(np.full((4, 4), np.nan))).all()

@@ -128,3 +128,9 @@ def test_a_body_without_faces_across_its_axis_gives_no_tilt():
     side = np.stack([np.cos(around), np.zeros_like(around), np.sin(around)], 1)  # an open tube's wall
     rotation, count = tilt_onto_axis(_jitter(side, 2.0, rng))
     assert rotation is None and count < 30
+    # a few normals along the axis (25, under the 30 the fit needs): a stray patch, not a face
+    caps = np.repeat([[0.0, 1.0, 0.0]], 25, axis=0)
+    rotation, count = tilt_onto_axis(np.vstack([side, caps]))
+    assert rotation is None and count == 25
+    rotation, count = tilt_onto_axis(np.vstack([side, caps, caps[:5]]))
+    assert rotation is not None and count == 30

@@ -7,6 +7,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from annotate.tracking import TrackingConfig
 from annotate.tracking.tilt import frame_tilt, untilted, windowed_tilts
 from evaluate.geometry import transform, untransform
 from sequences.synth.shapes import procedural_mesh
@@ -64,7 +65,26 @@ def test_a_frame_seeing_no_face_across_the_axis_or_a_turn_too_large_measures_not
     points = _seen_bowl(np.array([0.0, -1.0, 0.0]), noise=0.0005)
     turned = points @ Rotation.from_rotvec(np.radians([3.0, 0.0, 0.0])).as_matrix().T
     assert frame_tilt(turned, RADIUS, CONE, MIN_NORMALS, 1.0) is None
-    assert frame_tilt(turned, RADIUS, CONE, MIN_NORMALS, MAX_DEG) is not None
+    tilt = frame_tilt(turned, RADIUS, CONE, MIN_NORMALS, MAX_DEG)
+    assert tilt is not None
+    # the points were turned by +3 deg about x: the tilt turns them back (measured -3.23 deg about x)
+    np.testing.assert_allclose(np.degrees(tilt), [-3.0, 0.0, 0.0], atol=0.3)
+
+
+def test_only_a_shape_that_leaves_its_axis_undetermined_takes_the_flat_faces():
+    """engine: the flat snap and the frames' tilts are for an ill-conditioned axis fit (a shallow bowl) only; a fit
+    refused because it went wrong (a hand: the axis 12 deg off y) or missing keeps the placed boxes' tilt."""
+    from annotate.tracking.engine import _AxisFit, _nearly_sphere, _usable_axis
+
+    config = TrackingConfig()
+    tilted = np.array([np.sin(np.radians(12.0)), np.cos(np.radians(12.0)), 0.0])
+    bowl = _AxisFit(np.array([0.0, 1.0, 0.0]), np.zeros(3), config.max_axis_conditioning + 0.05)
+    hand = _AxisFit(tilted, np.zeros(3), config.max_axis_conditioning / 2)
+    can = _AxisFit(np.array([0.0, 1.0, 0.0]), np.zeros(3), config.max_axis_conditioning / 2)
+    assert _nearly_sphere(bowl, config) and _usable_axis(bowl, config) is None
+    assert not _nearly_sphere(hand, config) and _usable_axis(hand, config) is None
+    assert not _nearly_sphere(can, config) and _usable_axis(can, config) is not None
+    assert not _nearly_sphere(None, config)
 
 
 def test_each_frame_takes_the_median_of_the_tilts_measured_near_it():

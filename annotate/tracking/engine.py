@@ -67,7 +67,7 @@ frames run on one process).
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -161,32 +161,69 @@ def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
     return [f for f in ids if f in annotation.frames]
 
 
-def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-    """The axis (unit direction, point; object frame) fitted to the model of ``poses`` (``model``, where built
-    already), or None where the fit is unreliable: too ill-conditioned, or more than 10 deg off the box's y."""
-    model = model if model is not None else build_model(tracker, poses, tracker.config.max_global_frames, anchors)
+class _AxisFit(NamedTuple):
+    """The symmetry axis fitted to a model: unit direction and point (object frame, m) and how ill-conditioned
+    the fit of its direction is (symmetry.fit_symmetry_axis)."""
+
+    axis: np.ndarray
+    point: np.ndarray
+    conditioning: float
+
+
+def _fit_axis(tracker: Tracker, model: ObjectModel) -> _AxisFit | None:
+    """The axis fitted to ``model``'s points, or None where too few points or the fit fails."""
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
         axis, point, _, conditioning = fit_symmetry_axis(points, normal_radius=4 * tracker.config.voxel_size)
     except ValueError:
         return None
-    if conditioning > tracker.config.max_axis_conditioning:
+    return _AxisFit(axis, point, float(conditioning))
+
+
+def _nearly_sphere(fit: _AxisFit | None, config: TrackingConfig) -> bool:
+    """Whether the shape itself leaves its axis undetermined (a shallow bowl: the fit is ill-conditioned); not a
+    fit that failed or went wrong for other reasons (too few points, a hand), which keeps the placed boxes' tilt."""
+    return fit is not None and fit.conditioning > config.max_axis_conditioning
+
+
+def _usable_axis(fit: _AxisFit | None, config: TrackingConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """(direction, point) of ``fit``, or None where it is unreliable: too ill-conditioned, or more than 10 deg off
+    the box's y."""
+    if fit is None or _nearly_sphere(fit, config):
         # the shape does not pin the axis down (a shallow bowl): the placed boxes' mean tilt is better; for a mug's
         # body measured so too (v5 seed 0, 3 manual frames off by up to 3 deg: conditioning 0.25, median 1.26 ->
         # 1.71 deg when snapped past this gate)
         return None
     # a large correction means the fit went wrong (a hand, a partial view), not that the boxes are 10 deg off
-    if np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > 10.0:
+    if np.degrees(np.arccos(np.clip(fit.axis[1], -1, 1))) > 10.0:
         return None
-    return axis, point
+    return fit.axis, fit.point
 
 
-def _snap_symmetric(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
-    """Correction (4x4) putting the box's y on the symmetry axis estimated from the model, or None if unreliable."""
-    fitted = _model_axis(tracker, poses, anchors, model)
+def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The axis (unit direction, point; object frame) fitted to the model of ``poses`` (``model``, where built
+    already), or None where the fit is unreliable (:func:`_usable_axis`)."""
+    model = model if model is not None else build_model(tracker, poses, tracker.config.max_global_frames, anchors)
+    return _usable_axis(_fit_axis(tracker, model), tracker.config)
+
+
+def _snap_symmetric(tracker: Tracker, fit: _AxisFit | None) -> np.ndarray | None:
+    """Correction (4x4) putting the box's y on the symmetry axis of ``fit``, or None if unreliable."""
+    fitted = _usable_axis(fit, tracker.config)
     if fitted is None or np.linalg.norm(fitted[1]) > 0.25 * np.max(tracker.extents):
         return None
     return snap_upright(np.eye(4), *fitted)
+
+
+def _rotation_snap(rotation: np.ndarray, config: TrackingConfig) -> np.ndarray | None:
+    """The correction (4x4, about the box centre) for a model whose normals ``rotation`` (3x3) turns onto the
+    object axes, or None where that turn exceeds ``max_face_snap_deg`` (a larger one means the faces are not the
+    frame's)."""
+    if rotation_angle_deg(np.eye(3), rotation) > config.max_face_snap_deg:
+        return None
+    snap = np.eye(4)
+    snap[:3, :3] = rotation.T  # the normals n turn to rotation @ n: the object frame turns by its inverse
+    return snap
 
 
 def _snap_flat(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
@@ -198,11 +235,7 @@ def _snap_flat(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     rotation, count = tilt_onto_axis(normals, config.flat_cone_deg)
     if rotation is None or count < config.min_flat_share * len(normals):
         return None
-    if rotation_angle_deg(np.eye(3), rotation) > config.max_face_snap_deg:
-        return None
-    snap = np.eye(4)
-    snap[:3, :3] = rotation.T
-    return snap
+    return _rotation_snap(rotation, config)
 
 
 def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
@@ -226,11 +259,7 @@ def _snap_faces(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[st
     rotation, counts = face_rotation(normals)
     if rotation is None or not box_like(counts, len(normals), config.min_face_share, config.min_faces_total):
         return None
-    if rotation_angle_deg(np.eye(3), rotation) > config.max_face_snap_deg:
-        return None
-    snap = np.eye(4)
-    snap[:3, :3] = rotation.T  # the normals n turn to rotation @ n: the object frame turns by its inverse
-    return snap
+    return _rotation_snap(rotation, config)
 
 
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
@@ -434,15 +463,17 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     poses = {f: p @ correction for f, p in poses.items()}
     if symmetric and config.symmetry_snap:
         model = build_model(tracker, poses, config.max_global_frames, anchors)
-        snap = _snap_symmetric(tracker, poses, anchors, model)
-        nearly_sphere = snap is None
-        if nearly_sphere and config.flat_snap:
-            # the axis fit is refused (a shallow bowl: nearly a sphere): its foot and inner bottom still face along
-            # the axis, which the placed boxes' mean tilt does not (faces.tilt_onto_axis)
-            snap = _snap_flat(tracker, model)
+        fit = _fit_axis(tracker, model)
+        snap = _snap_symmetric(tracker, fit)
+        flat = None
+        if snap is None and _nearly_sphere(fit, config) and config.flat_snap:
+            # the shape leaves its axis undetermined (a shallow bowl: nearly a sphere), but its foot and inner bottom
+            # face along it, which the placed boxes' mean tilt does not (faces.tilt_onto_axis); a fit refused for
+            # other reasons (a hand, too few points) keeps that tilt: a can's ends measured worse than its side
+            snap = flat = _snap_flat(tracker, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
-        if nearly_sphere and config.flat_snap and config.frame_tilt:
+        if flat is not None and config.frame_tilt:
             # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py)
             tilts = windowed_tilts(ids, frame_tilts(tracker, poses), config.tilt_window, config.min_tilt_frames)
             poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}

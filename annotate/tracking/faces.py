@@ -86,8 +86,8 @@ def _turn_onto(m: np.ndarray, a: np.ndarray, about: tuple[int, ...]) -> np.ndarr
 
 def tilt_onto_axis(normals: np.ndarray, cone_deg: float = 5.0, min_points: int = 30, iterations: int = 6) -> tuple[np.ndarray | None, int]:
     """The rotation Rt (3x3, about x and z only) with ``Rt @ n`` on +-y for the normals ``n`` (N, 3; unit, object
-    frame) within ``cone_deg`` of +-y, and how many normals lie there after it; None where fewer than
-    ``min_points`` do.
+    frame) within ``cone_deg`` of +-y, and how many normals lay there at the last step (before its own turn);
+    None where fewer than ``min_points`` do.
 
     A symmetric object's flat faces across its axis (a bowl's foot and inner bottom) face along it exactly; the
     curved parts near them are spread evenly about it, so the cone's mean is the axis too. The spin about y is

@@ -22,7 +22,7 @@ def predict(previous: np.ndarray, before: np.ndarray) -> np.ndarray:
     # made rigid again: ``invert`` transposes, so a rotation block off by e gives a prediction off by about 2e
     # plus the error before it, and a chain's poses drifted off the rotations 2.4 times further each frame
     # (measured: from rounding, 1e-6 after 16 frames and 0.7, a shear of the points, after 40: v5 bowl seed 0,
-    # 3 manual frames)
+    # 3 manual frames); the seams' jump costs (reconcile) and the refinement's flip repair use it too
     return rigid(motion @ previous)
 
 

@@ -45,7 +45,7 @@ def frame_tilt(points_obj: np.ndarray, normal_radius: float, cone_deg: float, mi
     ``points_obj`` (N, 3; object frame, m) lying within ``cone_deg`` of +-y onto y, or None where fewer than
     ``min_normals`` lie there or the turn exceeds ``max_deg`` (a hand's palm, not a face of the object).
 
-    The frame's pose is corrected by ``pose @ tilt_matrix(-w)``: its object frame turns by the inverse.
+    The frame's pose is corrected by :func:`untilted` (``pose @ R(w)^T``): its object frame turns by the inverse.
     """
     points_obj = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
     if len(points_obj) < min_normals:
