@@ -42,6 +42,9 @@ class TrackingConfig:
     stretch_spin_check: bool = True  #: near-round objects without symmetry (a mug): turn blocks of frames about the axis to the spin the model of the other frames prefers (stretch_spin.py)
     smoothing: bool = True  #: smooth the refined poses where registration leaves a direction weak (smooth.py)
     information_sigma: float = 0.002  #: point noise (m) scaling a frame's registration information
+    smoothing_undo_deg: float = 3.0  #: a frame the smoothing turned further keeps its refined pose where that fits clearly better (refine.undo_smoothing_bends; 0: off)
+    smoothing_undo_gain: float = 0.05  #: ... by at least this fitness against the model of the trusted frames
+    smoothing_undo_max_deg: float = 45.0  #: ... and only up to this turn (beyond it a flip, which a round body fits as well)
     rotation_acceleration_deg: float = 0.5  #: expected rotational acceleration, deg per frame squared (hand-held, 30 fps)
     translation_acceleration: float = 0.0005  #: expected acceleration of the centre, m per frame squared
     manual_rotation_sigma_deg: float = 1.0  #: how far a placed box's rotation is off, per axis: weighs the anchors' links (reconcile.chain_frame_offsets) and the smoothing's pull (0: the links alone, no pull)

@@ -24,7 +24,8 @@
    would average it with its neighbours (a bottle with 3 manual frames: p90 49 -> 1.2 deg);
 4b. smooth: where a frame's registration leaves a direction weak (a mug's spin with its handle
    hidden), the pose is taken from its neighbours by an information-weighted least-squares
-   smoothing (smooth.py). Then the frames still suspect (their chains disagreed and no restart
+   smoothing (smooth.py); a frame it turned 3-45 deg keeps its refined pose where that fits the trusted frames
+   clearly better (refine.undo_smoothing_bends: a long run without evidence is bent by the smoothing alone). Then the frames still suspect (their chains disagreed and no restart
    cleared them) are registered once more to the model of the trusted final poses, which holds none
    of their own points (refine.reregister_suspects: a mug's frames 5-9.6 deg off where its chains
    were 22-38 deg apart came to 0.3-6.6 deg);
@@ -84,7 +85,7 @@ from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .faces import box_like, face_rotation, tilt_onto_axis
 from .model import ObjectModel
-from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model
+from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model, undo_smoothing_bends
 from .slide import against_the_motion, shifted, slide_corrections
 from .stretch_spin import stretch_spins
 from .symmetry import fit_symmetry_axis, snap_upright
@@ -418,7 +419,10 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
     results = recheck_disagreements(tracker, results, chain_poses, anchors, steps.phase(len(ids)))
     if config.smoothing:
-        results = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 and config.manual_translation_sigma > 0 else None, chained)
+        smoothed = smooth_refined(tracker, results, anchors, placed if config.manual_rotation_sigma_deg > 0 and config.manual_translation_sigma > 0 else None, chained)
+        # a long run of frames without evidence is bent by the smoothing alone: where the refined pose fits clearly
+        # better, it stays (refine.undo_smoothing_bends)
+        results = undo_smoothing_bends(tracker, results, smoothed, anchors)
     # before the first and after the last manual frame only one chain ran: a second one, on the whole model
     ends = []
     if a_idx[0] > 0 and a_idx[0] + 1 < len(ids):
