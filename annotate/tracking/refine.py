@@ -511,8 +511,8 @@ def smooth_refined(
 def undo_smoothing_bends(tracker: Tracker, refined: dict[str, FrameResult], smoothed: dict[str, FrameResult], anchors: list[str] = ()) -> dict[str, FrameResult]:
     """``smoothed`` with each frame that the smoothing turned more than ``config.smoothing_undo_deg`` (and at most
     ``config.smoothing_undo_max_deg``) back at its ``refined`` pose where that fits clearly better (fitness against
-    the model of the trusted smoothed frames, on the frame's points cropped at its refined pose, higher by
-    ``config.smoothing_undo_gain``). Figures stay.
+    the model of the trusted smoothed frames, on the frame's points cropped at its refined pose
+    (:func:`_fitness_pair`), higher by ``config.smoothing_undo_gain``). Figures stay.
 
     The smoothing gives no evidence to a frame whose chains disagreed; a long run of such frames is then bent only
     by the acceleration prior between the evidence on either side, linearised about poses that may jump. Measured:
@@ -532,16 +532,11 @@ def undo_smoothing_bends(tracker: Tracker, refined: dict[str, FrameResult], smoo
     model = trusted_model(tracker, smoothed, list(anchors))
     if model is None:
         return smoothed
-    tree = model.target(min_hits_for(model, config)).tree()
+    target = model.target(min_hits_for(model, config))
     out = dict(smoothed)
-    for frame_id in moved:  # a few frames, one KD query each
-        points, _ = tracker.crop(frame_id, refined[frame_id].pose)
-
-        def fitness(pose: np.ndarray) -> float:
-            distances, _ = tree.query(untransform(pose, points), distance_upper_bound=config.registration.fine_distance)
-            return float(np.isfinite(distances).mean()) if len(points) else 0.0
-
-        if fitness(refined[frame_id].pose) >= fitness(smoothed[frame_id].pose) + config.smoothing_undo_gain:
+    for frame_id in moved:  # a few frames, two KD queries each
+        at_refined, at_smoothed = _fitness_pair(tracker, frame_id, refined[frame_id].pose, smoothed[frame_id].pose, target)
+        if at_refined >= at_smoothed + config.smoothing_undo_gain:
             out[frame_id] = FrameResult(refined[frame_id].pose, smoothed[frame_id].ok, smoothed[frame_id].figures)
     return out
 
