@@ -1,4 +1,5 @@
-"""Shared test fixtures: paths to ../shared data (skipped with a reason where absent)."""
+"""Shared test fixtures: paths to ../shared data (skipped with a reason where absent), and rendered scenes that
+several tracking test modules use (rendered once per session)."""
 
 from __future__ import annotations
 
@@ -24,3 +25,22 @@ def nocs_dir() -> Path:
     if not path.exists():
         pytest.skip(f"NOCS sample not found at {path} (../shared is absent)")
     return path
+
+
+@pytest.fixture(scope="session")
+def rendered_mug(tmp_path_factory):
+    """(sequence, mesh, truth) of the test mug, 24 frames without a hand (test_tracking_render)."""
+    from test_tracking_render import mug_mesh, rendered_scene
+
+    return rendered_scene(tmp_path_factory.mktemp("mug") / "mug_0002", mug_mesh(), frames=24, seed=3, hand=False)
+
+
+@pytest.fixture(scope="session")
+def rendered_camera(tmp_path_factory):
+    """(sequence, mesh, truth) of a procedural camera, 12 frames without a hand (test_tracking_render)."""
+    import numpy as np
+    from test_tracking_render import rendered_scene
+
+    from sequences.synth.shapes import procedural_mesh
+
+    return rendered_scene(tmp_path_factory.mktemp("camera") / "camera_0001", procedural_mesh("camera", np.random.default_rng(3)), frames=12, seed=3, hand=False)

@@ -6,21 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import render_sequence, render_tracker
+from test_tracking_render import render_tracker
 
 from annotate.tracking.quality import pose_difference
 from annotate.tracking.refine import undo_smoothing_bends
 from annotate.tracking.tracker import FrameResult
-from sequences.reader import open_sequence
-from sequences.synth.shapes import procedural_mesh
-
-
-@pytest.fixture(scope="module")
-def camera_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("bends") / "camera_0001"
-    mesh = procedural_mesh("camera", np.random.default_rng(5))
-    truth = render_sequence(root, mesh, frames=12, seed=5, hand=False)
-    return open_sequence(root), mesh, truth
 
 
 def _turned(pose: np.ndarray, deg: float) -> np.ndarray:
@@ -30,8 +20,8 @@ def _turned(pose: np.ndarray, deg: float) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_a_bent_frame_gets_its_refined_pose_back_only_where_that_fits_better(camera_scene):
-    sequence, mesh, truth = camera_scene
+def test_a_bent_frame_gets_its_refined_pose_back_only_where_that_fits_better(rendered_camera):
+    sequence, mesh, truth = rendered_camera
     tracker = render_tracker(sequence, mesh)
     ids = sorted(truth)
     refined = {f: FrameResult(truth[f].copy(), True, {"fitness": 0.9}) for f in ids}

@@ -5,20 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence, render_tracker
+from test_tracking_render import mug_mesh, render_tracker, rendered_scene
 
 from annotate.tracking.engine import _snap_body_axis
-from sequences.reader import open_sequence
 
 FRAMES = 16
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("body_axis") / "mug_0004"
-    mesh = mug_mesh()
-    truth = render_sequence(root, mesh, frames=FRAMES, seed=5, hand=False)
-    return open_sequence(root), mesh, truth
+    return rendered_scene(tmp_path_factory.mktemp("body_axis") / "mug_0004", mug_mesh(), frames=FRAMES, seed=5, hand=False)
 
 
 

@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import render_sequence, render_tracker
+from test_tracking_render import render_tracker
 
 from annotate.tracking import TrackingConfig
 from annotate.tracking.engine import _snap_faces
 from annotate.tracking.faces import box_like, face_rotation, tilt_onto_axis
-from sequences.reader import open_sequence
 from sequences.synth.shapes import procedural_mesh
 
 SHARE, TOTAL = TrackingConfig.min_face_share, TrackingConfig.min_faces_total
@@ -69,17 +68,9 @@ def test_too_few_normals_in_the_cones_give_no_rotation():
     assert rotation is None
 
 
-@pytest.fixture(scope="module")
-def camera_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("faces") / "camera_0001"
-    mesh = procedural_mesh("camera", np.random.default_rng(3))
-    truth = render_sequence(root, mesh, frames=12, seed=3, hand=False)
-    return open_sequence(root), mesh, truth
-
-
 @pytest.mark.slow
-def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(camera_scene):
-    sequence, mesh, truth = camera_scene
+def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(rendered_camera):
+    sequence, mesh, truth = rendered_camera
     tracker = render_tracker(sequence, mesh)
     ids = sorted(truth)
     tilt = np.eye(4)

@@ -6,24 +6,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence, render_tracker
+from test_tracking_render import render_tracker
 
 from annotate.tracking import TrackingConfig
 from annotate.tracking.config import scaled_to
 from annotate.tracking.frames import FrameStore
 from annotate.tracking.refine import anchor_bend, coarse_round, refine_all
 from annotate.tracking.tracker import FrameResult, Tracker
-from sequences.reader import open_sequence
 
 FRAMES = 24
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("refine") / "mug_0002"
-    mesh = mug_mesh()
-    truth = render_sequence(root, mesh, frames=FRAMES, seed=3, hand=False)
-    return open_sequence(root), mesh, truth
+def scene(rendered_mug):
+    assert len(rendered_mug[2]) == FRAMES
+    return rendered_mug
 
 
 

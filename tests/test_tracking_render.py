@@ -19,6 +19,14 @@ from annotate.tracking.config import scaled_to
 from annotate.tracking.frames import FrameStore
 from annotate.tracking.tracker import Tracker
 from sequences.camera import Camera
+from sequences.reader import Sequence, open_sequence
+
+
+def rendered_scene(root: Path, mesh: trimesh.Trimesh, **render) -> tuple[Sequence, trimesh.Trimesh, dict[str, np.ndarray]]:
+    """:func:`render_sequence` of ``mesh`` into ``root`` (``render``: its settings), opened: (sequence, mesh,
+    {frame id: true 4x4 pose})."""
+    truth = render_sequence(root, mesh, **render)
+    return open_sequence(root), mesh, truth
 
 
 def render_tracker(sequence, mesh: trimesh.Trimesh, **settings) -> Tracker:

@@ -6,13 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence, render_tracker
+from test_tracking_render import render_tracker
 
 from annotate.tracking.colour_spin import spin_matrix
 from annotate.tracking.refine import refine_all
 from annotate.tracking.stretch_spin import stretch_spins
 from annotate.tracking.tracker import FrameResult
-from sequences.reader import open_sequence
 
 FRAMES = 24
 # the mug's axis: y through the body's centre (mug_mesh centres the box, handle included, so the body sits
@@ -21,12 +20,11 @@ AXIS = np.array([0.0, 1.0, 0.0])
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("stretch") / "mug_0003"
-    mesh = mug_mesh()
-    truth = render_sequence(root, mesh, frames=FRAMES, seed=3, hand=False)
+def scene(rendered_mug):
+    sequence, mesh, truth = rendered_mug
+    assert len(truth) == FRAMES
     body_centre = np.array([0.0, 0.0, mesh.bounds[0, 2] + 0.04])
-    return open_sequence(root), mesh, truth, body_centre
+    return sequence, mesh, truth, body_centre
 
 
 
