@@ -49,6 +49,13 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def _unit_rows(normals: np.ndarray) -> np.ndarray:
+    """The finite rows of ``normals`` (N, 3), each scaled to unit length (estimated normals come unnormalised)."""
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    normals = normals[np.all(np.isfinite(normals), axis=1)]
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+
+
 def face_rotation(normals: np.ndarray, cone_deg: float = 10.0, min_points: int = 30, iterations: int = 4) -> tuple[np.ndarray | None, np.ndarray]:
     """The rotation Rf (3x3) with ``Rf @ n`` on the nearest box axis for the normals ``n`` (N, 3; unit, object
     frame, either sign) that lie within ``cone_deg`` of one, and the count of such normals per axis (6,: +x, +y,
@@ -56,9 +63,7 @@ def face_rotation(normals: np.ndarray, cone_deg: float = 10.0, min_points: int =
 
     Axes holding fewer than ``min_points`` normals are left out of the fit (a stray patch is not a face).
     """
-    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    normals = normals[np.all(np.isfinite(normals), axis=1)]
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    normals = _unit_rows(normals)
     rotation, cos_cone = np.eye(3), np.cos(np.radians(cone_deg))
     counts = np.zeros(6, dtype=int)
     for _ in range(iterations):
@@ -93,9 +98,7 @@ def tilt_onto_axis(normals: np.ndarray, cone_deg: float = 5.0, min_points: int =
     curved parts near them are spread evenly about it, so the cone's mean is the axis too. The spin about y is
     left alone (it is free for symmetry y).
     """
-    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    normals = normals[np.all(np.isfinite(normals), axis=1)]
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    normals = _unit_rows(normals)
     rotation, cos_cone, count = np.eye(3), np.cos(np.radians(cone_deg)), 0
     for _ in range(iterations):
         turned = normals @ rotation.T
