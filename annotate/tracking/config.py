@@ -40,6 +40,7 @@ class TrackingConfig:
     max_through_share: float = 0.5  #: ... in more than this share of the frames that see them (a moved hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
     stretch_spin_check: bool = True  #: near-round objects without symmetry (a mug): turn blocks of frames about the axis to the spin the model of the other frames prefers (stretch_spin.py)
+    spin_window: int = 2  #: near-round objects without symmetry whose spin is free somewhere (a mug): a suspect or free-spin frame takes the mean spin about the body's axis of the frames within this many either side (spin_window.py; 0: off)
     smoothing: bool = True  #: smooth the refined poses where registration leaves a direction weak (smooth.py)
     information_sigma: float = 0.002  #: point noise (m) scaling a frame's registration information
     smoothing_undo_deg: float = 3.0  #: a frame the smoothing turned further keeps its refined pose where that fits clearly better (refine.undo_smoothing_bends; 0: off)
@@ -56,6 +57,14 @@ class TrackingConfig:
     min_face_share: float = 0.05  #: ... when each axis holds at least this share of the model's normals (a laptop's thin sides: 0.3-0.6 %)
     min_faces_total: float = 0.5  #: ... and all six faces together at least this share (cameras 0.67-0.75; a mug's round side leaves 0.18-0.32)
     max_face_snap_deg: float = 5.0  #: ... and the turn is at most this (a larger one means the faces are not the frame's)
+    hinge_snap: bool = True  #: a hinged body (a laptop): turn the box's y onto its base's normals and its x square to its lid's (faces.hinge_rotation), at most max_face_snap_deg
+    hinge_cone_deg: float = 5.0  #: ... the normals within this of +-y (the base's top and bottom) fix the tilt
+    hinge_plane_deg: float = 3.0  #: ... the normals within this of the y-z plane (the lid, the base's edges) fix the spin
+    min_hinge_cone_share: float = 0.05  #: ... when at least this share of the model's normals lies within hinge_cone_deg of +-y
+    min_hinge_plane_share: float = 0.35  #: ... and at least this share within hinge_plane_deg of the y-z plane
+    hinge_centring: bool = True  #: ... and each frame moved along the hinge to the middle of the object's ends seen about it (centring.py)
+    centring_tolerance: float = 0.005  #: ... by the frames whose span along it reaches within this (m) of the widest spans
+    centring_window: int = 2  #: ... within this many frames either side (their median middle)
     flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
     flat_cone_deg: float = 5.0  #: ... those within this of +-y
     min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals

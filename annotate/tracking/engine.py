@@ -40,12 +40,16 @@
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
-   the box centre (which the handle keeps off the axis);
+   the box centre (which the handle keeps off the axis); a box-like body (a camera) onto its faces (faces.py); a
+   hinged one (a laptop) its y onto its base's faces and its x square to its lid's (faces.hinge_rotation), and each
+   frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, a spin about the axis that the geometry leaves free checked against the colours and
    turned to the spin they prefer (colour_spin.py: a mug with its handle hidden, carried off by
-   both chains alike; done before the common frame, after the joint refinement and the smoothing);
+   both chains alike; done before the common frame, after the joint refinement and the smoothing); a near-round
+   body whose spin is free somewhere has its suspect and free-spin frames take the mean spin about its axis of the
+   frames within +-2 (spin_window.py: they were registered one at a time, and jitter about the axis);
    frames in a long run of such free-spin frames, or beyond the last frame that fixes the spin, are
    flagged: only the motion carries their spin (consistency.free_spin_runs).
 
@@ -82,11 +86,13 @@ from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference, rotation_angle_deg
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
+from .centring import centre_offsets, centred, extent_along
 from .colour_spin import ColourSpinCheck, spin_matrix
-from .faces import box_like, face_rotation, tilt_onto_axis
+from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model, undo_smoothing_bends
 from .slide import against_the_motion, shifted, slide_corrections
+from .spin_window import windowed_spins
 from .stretch_spin import stretch_spins
 from .symmetry import fit_symmetry_axis, snap_upright
 from .tilt import frame_tilts, untilted, windowed_tilts
@@ -263,6 +269,29 @@ def _snap_faces(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[st
     return _rotation_snap(rotation, config)
 
 
+def _snap_hinge(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
+    """Correction (4x4, a rotation about the box centre) turning the box onto a hinged body's faces (a laptop's base
+    onto y, its lid's and edges' normals into the y-z plane; faces.hinge_rotation), or None where the model's normals
+    are not laid out so or the turn exceeds ``max_face_snap_deg``."""
+    config = tracker.config
+    normals = np.asarray(model.target(min_hits_for(model, config)).cloud.normals)
+    rotation, shares = hinge_rotation(normals, config.hinge_cone_deg, config.hinge_plane_deg)
+    if rotation is None or shares[0] < config.min_hinge_cone_share or shares[1] < config.min_hinge_plane_share:
+        return None
+    return _rotation_snap(rotation, config)
+
+
+def _centred_on_hinge(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], snap: np.ndarray, model: ObjectModel) -> dict[str, np.ndarray]:
+    """``poses`` (object frame of ``model``, before the hinge ``snap``) each moved along the snapped x (the hinge) to
+    the middle of the object's ends seen by the frames about it (centring.py)."""
+    config = tracker.config
+    target = model.target(min_hits_for(model, config))
+    hinge = snap[:3, 0]  # the snapped object's x, in the frame of the model (the snap turns about the box centre)
+    spans = [extent_along(tracker, f, poses[f], target, hinge) for f in ids]
+    offsets = centre_offsets(spans, config.centring_tolerance, config.centring_window)
+    return {f: centred(poses[f], offset, hinge) for f, offset in zip(ids, offsets)}
+
+
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
     """Whether the model of the placed frames, spun by 10 deg about its fitted axis, still fits itself
     (colour_spin.ColourSpinCheck.round: a mug's body; not a laptop or a camera)."""
@@ -296,22 +325,23 @@ def _stretch_spins(tracker: Tracker, results: dict[str, FrameResult], anchors: l
     return {f: FrameResult(r.pose, r.ok, {**r.figures, "stretch_spin_deg": turned[f]}) if f in turned else r for f, r in results.items()}
 
 
-def colour_spins(tracker: Tracker, results: dict[str, FrameResult], model: ObjectModel) -> dict[str, tuple[float, np.ndarray]]:
+def colour_spins(tracker: Tracker, results: dict[str, FrameResult], model: ObjectModel) -> tuple[dict[str, tuple[float, np.ndarray]], tuple[np.ndarray, np.ndarray] | None]:
     """Per frame whose geometry leaves the spin about the object's axis free: the spin (degrees) its colours
     prefer against ``model`` (of the trusted frames, object frame; colour_spin.py) and the 4x4 object-frame
-    spin S (``pose @ S`` is the pose the colours prefer)."""
+    spin S (``pose @ S`` is the pose the colours prefer); and the axis they spin about (unit direction, point;
+    object frame), None where no axis could be fitted."""
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
         check = ColourSpinCheck(tracker, points)
     except ValueError:
-        return {}
+        return {}, None
     poses = {f: r.pose for f, r in results.items() if r.ok}
     # a suspect frame's pose is doubtful (its chains disagreed): its colours place no model colour. Measured once the
     # suspect frames are re-registered (refine.reregister_suspects), v5 seeds 0-3: 3 manual frames off by up to 5 deg,
     # mug seed 3 median / p90 2.80 / 3.54 -> 0.99 / 2.48 deg, failing checks 15 -> 13 of 96; 4 manual frames off by up
     # to 3 deg, mug seed 2 p90 4.00 -> 4.15, seed 3 2.36 -> 2.90 (frames 0-2 and 21, flagged); the rest unchanged
     spins = check.run(poses, {f: r.figures.get("fitness", 0.0) for f, r in results.items() if r.ok and not suspect(r, tracker.config)})
-    return {f: (deg, spin_matrix(check.axis, check.point, deg)) for f, deg in spins.items()}
+    return {f: (deg, spin_matrix(check.axis, check.point, deg)) for f, deg in spins.items()}, (check.axis, check.point)
 
 
 def track_sequence(
@@ -449,11 +479,19 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         else:
             results[frame_id] = FrameResult(shifted(r.pose, shift), r.ok, {**r.figures, "slide_m": metres})
     # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
-    spins = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else {}
+    spins, spin_axis = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else ({}, None)
     if config.colour_spin_correct:
         # not a manual frame: the object frame is fitted to the placed boxes through their refined poses (step 5),
         # and a turn of one of those moves every frame (measured: v5 mug seed 3, 3 manual frames, median 1.45 -> 2.5 deg)
         results = {f: FrameResult(r.pose @ spins[f][1], r.ok, r.figures) if f in spins and spins[f][0] and f not in placed else r for f, r in results.items()}
+    if nearly_round and spins and spin_axis is not None and config.spin_window > 0:
+        # where the shape leaves the spin free somewhere (a mug, not a camera: the colour check found free frames),
+        # each suspect or free-spin frame took its spin from its own registration and colours, one frame at a time:
+        # consecutive frames jitter about the axis, which the hand turns smoothly (spin_window.py)
+        chosen = [f not in placed and (f in spins or suspect(results[f], config)) for f in ids]
+        # about the axis the colours spun the frames about (the body's, fitted to the model of the trusted frames)
+        steadied = windowed_spins([results[f].pose for f in ids], chosen, config.spin_window, *spin_axis, [results[f].ok for f in ids])
+        results = {f: FrameResult(p, results[f].ok, results[f].figures) for f, p in zip(ids, steadied)}
     # where the spin is free and so is that of its neighbours, only the motion carries it: how long such a run is
     runs = free_spin_runs(ids, set(spins), set(anchors))
     # the final pose must stay near one of the chains it came from (both in anchor 0's object frame)
@@ -481,16 +519,23 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py)
             tilts = windowed_tilts(ids, frame_tilts(tracker, poses), config.tilt_window, config.min_tilt_frames)
             poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
-    elif not symmetric and (config.face_snap or (nearly_round and config.body_axis_snap)):
+    elif not symmetric and (config.face_snap or config.hinge_snap or (nearly_round and config.body_axis_snap)):
         model = build_model(tracker, poses, config.max_global_frames, anchors)
         # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;
         # cameras pass the roundness test too, so the faces are asked first)
         snap = _snap_faces(tracker, poses, anchors, model) if config.face_snap else None
+        hinged = False
+        if snap is None and config.hinge_snap and not nearly_round:
+            snap = _snap_hinge(tracker, model)
+            hinged = snap is not None
         if snap is None and nearly_round and config.body_axis_snap:
             # the placed boxes' mean tilt is off by their errors' mean (1-1.7 deg); the body's axis, fitted to the
             # model, is not (v5 mugs, seeds 1-7, 4 manual frames off by up to 3 deg: medians 1.37, 1.00, 1.00, 1.82,
             # 1.20, 1.49, 1.66 -> 1.11, 0.85, 1.08, 1.72, 0.89, 1.34, 1.02 deg; seed 0 and 3 manual frames: refused)
             snap = _snap_body_axis(tracker, poses, anchors, model)
+        if hinged and config.hinge_centring:
+            # ... and its centre along the hinge from the ends each frame sees, which the ICP leaves free (centring.py)
+            poses = _centred_on_hinge(tracker, ids, poses, snap, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
 
