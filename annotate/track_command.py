@@ -44,12 +44,13 @@ def run_track(args) -> int:
     config.registration.facing = bool(getattr(args, "facing", True))
     if getattr(args, "workers", None) is not None:
         config.workers = int(args.workers)
-    bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True)
+    # a terminal redraws the bar in place; a log (a batch job) gets a line every few seconds, not every step
+    interactive = sys.stderr.isatty()
+    bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True, mininterval=0.1 if interactive else 5.0)
 
     def progress(done: int, total: int) -> None:
         bar.total = total
-        bar.n = done
-        bar.refresh()
+        bar.update(max(done - bar.n, 0))  # update, not refresh: tqdm then draws at most every mininterval
 
     start = time.perf_counter()
     try:
