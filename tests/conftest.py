@@ -44,3 +44,14 @@ def rendered_camera(tmp_path_factory):
     from sequences.synth.shapes import procedural_mesh
 
     return rendered_scene(tmp_path_factory.mktemp("camera") / "camera_0001", procedural_mesh("camera", np.random.default_rng(3)), frames=12, seed=3, hand=False)
+
+
+@pytest.fixture(scope="session")
+def rendered_laptop(tmp_path_factory):
+    """(sequence, mesh, truth) of a procedural laptop, 12 frames without a hand (test_tracking_render)."""
+    import numpy as np
+    from test_tracking_render import rendered_scene
+
+    from sequences.synth.shapes import procedural_mesh
+
+    return rendered_scene(tmp_path_factory.mktemp("laptop") / "laptop_0001", procedural_mesh("laptop", np.random.default_rng(4)), frames=12, seed=4, hand=False)

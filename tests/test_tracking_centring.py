@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import render_tracker, rendered_scene
+from test_tracking_render import render_tracker
 
 from annotate.tracking.centring import centre_offsets, centred, extent_along
 from annotate.tracking.engine import _centred_on_hinge
 from annotate.tracking.refine import build_model, min_hits_for
-from sequences.synth.shapes import procedural_mesh
 
 
 def test_offsets_are_the_median_middle_of_the_frames_that_saw_both_ends():
@@ -35,12 +34,6 @@ def test_a_centred_pose_moves_its_box_centre_along_its_own_axis():
     assert np.array_equal(moved[:3, :3], pose[:3, :3])
     # the new box centre is the old object-frame point 12 mm along x
     assert np.allclose(moved[:3, 3], pose[:3, :3] @ [0.012, 0.0, 0.0] + pose[:3, 3], atol=1e-15)
-
-
-@pytest.fixture(scope="module")
-def rendered_laptop(tmp_path_factory):
-    """(sequence, mesh, truth) of a procedural laptop, 12 frames without a hand."""
-    return rendered_scene(tmp_path_factory.mktemp("laptop") / "laptop_0001", procedural_mesh("laptop", np.random.default_rng(4)), frames=12, seed=4, hand=False)
 
 
 @pytest.mark.slow

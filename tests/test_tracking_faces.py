@@ -176,10 +176,8 @@ def test_shapes_that_are_not_hinged_fall_short_of_the_shares():
 
 
 @pytest.mark.slow
-def test_laptop_boxes_tilted_together_are_turned_back_onto_its_base_and_lid(tmp_path):
-    from test_tracking_render import rendered_scene
-
-    sequence, mesh, truth = rendered_scene(tmp_path / "laptop_0001", procedural_mesh("laptop", np.random.default_rng(4)), frames=12, seed=4, hand=False)
+def test_laptop_boxes_tilted_together_are_turned_back_onto_its_base_and_lid(rendered_laptop):
+    sequence, mesh, truth = rendered_laptop
     tracker = render_tracker(sequence, mesh)
     ids = sorted(truth)
     tilt = np.eye(4)

@@ -89,14 +89,29 @@ def face_rotation(normals: np.ndarray, cone_deg: float = 10.0, min_points: int =
     return rotation, counts
 
 
+def _alignment_rows(m: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The linearised least-squares rows (3N, 3) and right-hand side (3N,) for a small rotation w turning unit
+    vectors ``m`` (N, 3) onto ``a`` (N, 3): (I + [w]x) m ~ a, i.e. w x m = -(m x w) = a - m."""
+    return -_skew(m).reshape(-1, 3), (a - m).reshape(-1)
+
+
 def _turn_onto(m: np.ndarray, a: np.ndarray, about: tuple[int, ...]) -> np.ndarray:
     """The small rotation (3x3) about the object axes ``about`` that best turns unit vectors ``m`` (N, 3) onto
-    ``a`` (N, 3): linearised least squares, (I + [w]x) m ~ a, i.e. w x m = -(m x w) = a - m."""
+    ``a`` (N, 3) (:func:`_alignment_rows`)."""
     columns = list(about)
-    w_part, *_ = np.linalg.lstsq(-_skew(m)[:, :, columns].reshape(-1, len(columns)), (a - m).reshape(-1), rcond=None)
+    rows, rhs = _alignment_rows(m, a)
     w = np.zeros(3)
-    w[columns] = w_part
+    w[columns], *_ = np.linalg.lstsq(rows[:, columns], rhs, rcond=None)
     return Rotation.from_rotvec(w).as_matrix()
+
+
+def _near_y(turned: np.ndarray, cos_cone: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the unit normals ``turned`` (N, 3) lie within the cone (cosine ``cos_cone``) of +-y (N,), and the
+    axis each of those faces along (+y or -y; (K, 3))."""
+    near = np.abs(turned[:, 1]) > cos_cone
+    targets = np.zeros((int(near.sum()), 3))
+    targets[:, 1] = np.sign(turned[near, 1])
+    return near, targets
 
 
 def tilt_onto_axis(normals: np.ndarray, cone_deg: float = 5.0, min_points: int = 30, iterations: int = 6) -> tuple[np.ndarray | None, int]:
@@ -112,14 +127,11 @@ def tilt_onto_axis(normals: np.ndarray, cone_deg: float = 5.0, min_points: int =
     rotation, cos_cone, count = np.eye(3), np.cos(np.radians(cone_deg)), 0
     for _ in range(iterations):
         turned = normals @ rotation.T
-        near = np.abs(turned[:, 1]) > cos_cone
+        near, a = _near_y(turned, cos_cone)
         count = int(near.sum())
         if count < min_points:
             return None, count
-        m = turned[near]
-        a = np.zeros_like(m)
-        a[:, 1] = np.sign(m[:, 1])
-        rotation = _turn_onto(m, a, (0, 2)) @ rotation
+        rotation = _turn_onto(turned[near], a, (0, 2)) @ rotation
     return rotation, count
 
 
@@ -142,18 +154,16 @@ def hinge_rotation(normals: np.ndarray, cone_deg: float = 5.0, plane_deg: float 
     shares = np.zeros(2)
     for _ in range(iterations):
         turned = normals @ rotation.T
-        near = np.abs(turned[:, 1]) > cos_cone
+        near, a = _near_y(turned, cos_cone)
         flat = np.abs(turned[:, 0]) < sin_plane if plane_deg > 0 else np.zeros(len(turned), dtype=bool)
         shares = np.array([near.mean(), flat.mean()]) if len(turned) else shares
         if near.sum() < min_points or (plane_deg > 0 and flat.sum() < min_points):
             return None, shares
-        m = turned[near]
-        a = np.zeros_like(m)
-        a[:, 1] = np.sign(m[:, 1])
         # (I + [w]x) m ~ a for the cone; the x row of (I + [w]x) p = 0 for the plane: w_y p_z - w_z p_y = -p_x
+        cone_rows, cone_rhs = _alignment_rows(turned[near], a)
         p = turned[flat]
-        rows = np.vstack([-_skew(m).reshape(-1, 3), np.column_stack([np.zeros(len(p)), p[:, 2], -p[:, 1]])])
-        rhs = np.concatenate([(a - m).reshape(-1), -p[:, 0]])
+        rows = np.vstack([cone_rows, np.column_stack([np.zeros(len(p)), p[:, 2], -p[:, 1]])])
+        rhs = np.concatenate([cone_rhs, -p[:, 0]])
         # the spin is seen only by normals with a z component (the lid, the base's front and back): where they are
         # too few, the normals' noise alone would set it, and it is left as it is
         about = [0, 1, 2] if len(p) and np.sum(p[:, 2] ** 2) >= min_spin_share * len(normals) else [0, 2]
