@@ -111,6 +111,42 @@ def test_model_counts_frames_per_voxel_and_rejects_rarely_seen_voxels():
     assert np.allclose(np.sort(model2.points()[0][:, 0]), [0.005, 0.015])
 
 
+def test_frames_added_at_once_make_the_model_of_frames_added_one_by_one():
+    """add_frames merges once: the same voxels, sums (to the last bit), counts and hits as one add_frame per frame;
+    and the voxel means and hits agree with a direct count per voxel."""
+    rng = np.random.default_rng(4)
+    frames = []
+    for k in range(6):
+        pose = _known_transform(20.0 * k, 40.0, k)
+        pose[2, 3] += 0.6
+        points_obj = rng.uniform(-0.049, 0.049, size=(300 + 50 * k, 3))  # inside the half box
+        frames.append((transform(pose, points_obj), rng.uniform(0, 1, size=points_obj.shape), pose, 1 + k % 2))
+    frames.append((np.zeros((0, 3)), None, np.eye(4), 1))  # a frame with no points still counts as a frame
+    one_by_one = ObjectModel(0.01, np.array([0.1, 0.1, 0.1]), margin=0.0)
+    for points, colors, pose, weight in frames:
+        one_by_one.add_frame(points, colors, pose, weight)
+    at_once = ObjectModel(0.01, np.array([0.1, 0.1, 0.1]), margin=0.0)
+    at_once.add_frames(frames[:2])
+    at_once.add_frames(frames[2:])
+    for name in ("keys", "sum_xyz", "sum_rgb", "sum_view", "count", "hits"):
+        assert np.array_equal(getattr(one_by_one, name), getattr(at_once, name)), name
+    assert at_once.frames == one_by_one.frames == 7
+    # direct count: each frame's points in the object frame, voxel by voxel
+    obj = [transform(invert(pose), points) for points, _, pose, _ in frames[:-1]]
+    voxels = [np.floor(p / 0.01).astype(int) for p in obj]
+    every = np.concatenate(voxels)
+    unique, inverse = np.unique(every, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    means = np.stack([np.bincount(inverse, weights=np.concatenate(obj)[:, k]) for k in range(3)], axis=1) / np.bincount(inverse)[:, None]
+    hits = sum(np.isin(np.arange(len(unique)), np.unique(inverse[sum(map(len, voxels[:i])):sum(map(len, voxels[: i + 1]))])) * frames[i][3]
+               for i in range(len(voxels)))
+    points, _ = at_once.points()
+    order = np.lexsort(np.floor(points / 0.01).astype(int).T[::-1])
+    assert len(points) == len(unique)
+    np.testing.assert_allclose(points[order], means, atol=1e-12)
+    assert np.array_equal(at_once.hits[order], hits)
+
+
 def test_closest_about_y_picks_the_consistent_turn():
     reference = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
     turned = reference @ rotation_about_y(np.radians(77))

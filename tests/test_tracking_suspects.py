@@ -137,3 +137,33 @@ def test_a_frame_left_turned_over_is_registered_again_from_the_frame_before(scen
         np.testing.assert_array_equal(out[f].pose, truth[f])
     calm = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
     assert repair_flips(tracker, calm) is calm  # nothing turned over: nothing built, nothing changed
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="worker processes are forked, on Linux only")
+def test_a_rounds_suspect_stretches_run_apart_and_give_the_loops_poses(scene):
+    """The first round's restarts of suspect frames from the refined poses before them: cut into stretches that need
+    nothing of each other, run on two processes, they give what one loop over all the frames in order gives."""
+    from annotate.tracking.refine import _Settler, min_hits_for
+    from annotate.tracking.registration import open3d_threads
+
+    tracker, truth, ids, _, model = scene
+    results = {f: FrameResult(truth[f], True, dict(TRUSTED)) for f in ids}
+    lost = [ids[1], ids[5], ids[6]]  # two stretches: frames 2-4 are kept between them
+    for f in lost:
+        results[f] = FrameResult(off(truth[f], 6.0, 0.004), True, dict(SUSPECT))
+    counted = Tracker(tracker.store, tracker.extents, False, replace(tracker.config, workers=2))
+    hits = min_hits_for(model, counted.config)
+    with open3d_threads(1):
+        own = {f: counted.register(f, results[f].pose, model, hits) for f in ids}
+        settler = _Settler(counted, results, own, {f: r.pose for f, r in results.items()}, model, hits, retry=True)
+        stretches = settler._stretches(ids)
+        assert [(a, b, retried) for a, b, retried, _ in stretches] == [(0, 5, True), (5, 10, True)]
+        np.testing.assert_array_equal(stretches[1][3][-1], settler._plain[ids[4]][1])  # frame 5 restarts from frame 4
+        apart = settler.all(2)
+        in_order = dict(settler._run((0, len(ids), True, [])))
+    assert list(apart) == ids
+    for f in ids:
+        assert np.array_equal(apart[f].pose, in_order[f].pose), f
+        assert apart[f].figures == in_order[f].figures
+    for f in lost:  # restarted from the frames before them, they come back
+        assert pose_difference(apart[f].pose, truth[f], False)[0] < 1.0

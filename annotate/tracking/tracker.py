@@ -43,9 +43,11 @@ class Tracker:
         margin = self.config.crop_margin if margin is None else margin
         return self.store.crop(frame_id, pose, self.box, margin, self.config.voxel_size)
 
-    def add_to_model(self, model: ObjectModel, frame_id: str, pose: np.ndarray, weight: int = 1) -> None:
-        points, colors = self.crop(frame_id, pose, margin=0.0)
-        model.add_frame(points, colors, pose, weight)
+    def add_to_model(self, model: ObjectModel, frame_id: str | list[str], pose: np.ndarray | list[np.ndarray], weight: int = 1) -> None:
+        """Add the frame (or the frames, in order, with their poses) cropped by the box at its pose to ``model``."""
+        if isinstance(frame_id, str):
+            frame_id, pose = [frame_id], [pose]
+        model.add_frames([(*self.crop(f, p, margin=0.0), p, weight) for f, p in zip(frame_id, pose)])
 
     def register(self, frame_id: str, init_pose: np.ndarray, model: ObjectModel, min_hits: int = 1, refresh_every: int = 1) -> FrameResult:
         """Register a frame to ``model`` starting from ``init_pose`` (4x4); never raises on bad data."""
