@@ -88,10 +88,11 @@ def refine_all(
     (measured on a v5 laptop, seed 1: 78 of 100 frames suspect; the model of all frames held
     frames whose chains had slid up to 100 mm along the hinge, and left the rotation at
     1.71/3.12 deg median/p90; the best quarter's model 0.82/1.42 deg). A suspect frame also
-    starts from its predecessor's refined pose and its constant-velocity prediction, the best-fitting start kept, so a chain that lost the object is repaired
-    against the whole model; in the first round only (later rounds start from the repaired pose: measured on
-    24 v5 sequences, the same failing goal checks within one, rotation p90 sum 49.7 -> 47.7 deg, and a laptop's
-    refinement 492 -> 346 registrations, 143 -> 126 ms per frame).
+    starts from the last refined pose that fits (``config.min_fitness``) and its constant-velocity prediction, the
+    best-fitting start kept, so a chain that lost the object is repaired against the whole model; in the first round
+    only (later rounds start from the repaired pose: measured on 24 v5 sequences, the same failing goal checks within
+    one, rotation p90 sum 49.7 -> 47.7 deg, and a laptop's refinement 492 -> 346 registrations, 143 -> 126 ms per
+    frame).
     A frame whose registration fails keeps its pose and figures (with the failure noted), and so
     does one that a round would turn by more than ``config.max_refine_step_deg`` or move by more
     than ``config.max_refine_step_m`` without fitting the same points clearly better
@@ -143,8 +144,9 @@ class _Settler:
     frames are settled in order. But an outcome that is not a suspect frame's needs nothing of the frames before
     it: once two such frames were kept after a suspect one, the frames after them depend on nothing before. The
     frames are cut there into stretches that each run in order, independently of the others, on several processes
-    where there are cores (measured: v5 laptop seed 2, 62 suspect frames in 4 stretches; its 256 extra
-    registrations took 3.8 s of a 15 s run on one process). The outcome is the same as in one loop, bit for bit.
+    where there are cores (measured: v5 laptop seed 2, 62 suspect frames in 4 stretches; its
+    two first rounds, the coarse one and the fine one, ran up to 248 such registrations in the parent process: the
+    parent's 256 registrations took 3.8 s of a 15 s run on two cores). The outcome is the same as in one loop, bit for bit.
     """
 
     def __init__(self, tracker: Tracker, results: dict[str, FrameResult], own: dict[str, FrameResult], origin: dict[str, np.ndarray],
