@@ -74,3 +74,30 @@ def test_crop_without_colours_gives_zeros_and_an_empty_box_nothing():
     behind[2, 3] = 2.0  # a box 1 m behind the wall sees nothing of it
     points, colors = store.crop("a", behind, np.array([0.1, 0.1, 0.1]), margin=0.0)
     assert points.shape == (0, 3) and colors.shape == (0, 3)
+
+
+def test_a_batch_of_crops_equals_the_crops_one_by_one_on_worker_processes():
+    """FrameStore.crops: the arrays of crop() for each request, duplicates and kept crops included, computed on two
+    processes; the batch's crops are kept, and a crop kept before the batch survives it even where the batch
+    pushes it out of the cache."""
+    import sys
+
+    extents = np.array([0.2, 0.1, 0.1])
+    poses = [_box_pose(0.01 * k) for k in range(20)]
+    requests = [(f"f{k}", poses[k]) for k in range(20)] + [("f3", poses[3])]  # a duplicate
+    one_by_one = FrameStore(_WallSequence(1.0), stride=2, colors=True)
+    expected = [one_by_one.crop(f, pose, extents, 0.0, 0.004) for f, pose in requests]
+    store = FrameStore(_WallSequence(1.0), stride=2, colors=True, crop_cache=10)
+    early = store.crop("f0", poses[0], extents, 0.0, 0.004)  # kept; the batch's 19 new crops push it out
+    workers = 2 if sys.platform.startswith("linux") else 1
+    got = store.crops(requests, extents, 0.0, 0.004, workers=workers)
+    assert len(got) == len(expected)
+    for (p, c), (q, d) in zip(got, expected):
+        assert np.array_equal(p, q) and np.array_equal(c, d)
+        assert len(p) > 100
+    np.testing.assert_array_equal(got[0][0], early[0])
+    assert ("f0", poses[0].tobytes()) not in {key[:2] for key in store._crops}  # pushed out, yet served above
+    got[19][0][:] = 0  # the caller's own arrays: the kept crop is untouched
+    again = store.crop("f19", poses[19], extents, 0.0, 0.004)
+    np.testing.assert_array_equal(again[0], expected[19][0])
+    assert store.sequence.reads == 20  # every frame read once, here (not on a worker): f0 before the batch, 19 in it

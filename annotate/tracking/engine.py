@@ -544,6 +544,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]
     jumps = dict(zip(ids, rotation_jumps(kept, symmetric)))
     out = annotation.copy()
+    # each frame's share of points in its final box, on the workers (a crop each)
+    seen = [f for f in ids if results[f].ok]
+    in_box = dict(zip(seen, ordered_map(lambda f: in_box_share(tracker.crop(f, poses[f])[0], poses[f], tracker.box), seen, workers)))
     for frame_id in ids:
         result = results[frame_id]
         figures = dict(result.figures)
@@ -555,8 +558,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if frame_id in runs:
             figures["free_spin_run"], figures["free_spin_end"] = runs[frame_id]
         if result.ok:
-            points, _ = tracker.crop(frame_id, poses[frame_id])
-            figures["in_box"] = in_box_share(points, poses[frame_id], tracker.box)
+            figures["in_box"] = in_box[frame_id]
         if frame_id in placed:
             deg, metres = pose_difference(placed[frame_id], poses[frame_id], symmetric)
             figures["manual_correction_deg"] = deg

@@ -538,16 +538,17 @@ def smooth_refined(
         return results
     model = build_model(tracker, trusted, config.max_global_frames, [a for a in anchors if a in trusted])
     target = model.target(min_hits_for(model, config))
-    information = []
     informed = set(trusted) | refinement_confirmed(tracker, results, chained or {})
-    for frame_id in order:
+
+    def information_of(frame_id: str) -> np.ndarray:
         if frame_id not in informed:
-            information.append(np.zeros((6, 6)))
-            continue
+            return np.zeros((6, 6))
         pose = results[frame_id].pose
         points, _ = tracker.crop(frame_id, pose, margin=0.0)
-        local = untransform(pose, points)
-        information.append(registration_information(local, target, config.registration.fine_distance, config.information_sigma))
+        return registration_information(untransform(pose, points), target, config.registration.fine_distance, config.information_sigma)
+
+    target.tree()  # built here, before the work forks: the workers inherit it
+    information = ordered_map(information_of, order, config.worker_count())
     priors = {}
     placed = {m: P for m, P in (placed or {}).items() if m in results and results[m].ok}
     if placed:

@@ -46,8 +46,10 @@ class Tracker:
     def add_to_model(self, model: ObjectModel, frame_id: str | list[str], pose: np.ndarray | list[np.ndarray], weight: int = 1) -> None:
         """Add the frame (or the frames, in order, with their poses) cropped by the box at its pose to ``model``."""
         if isinstance(frame_id, str):
-            frame_id, pose = [frame_id], [pose]
-        model.add_frames([(*self.crop(f, p, margin=0.0), p, weight) for f, p in zip(frame_id, pose)])
+            model.add_frame(*self.crop(frame_id, pose, margin=0.0), pose, weight)
+            return
+        crops = self.store.crops(list(zip(frame_id, pose)), self.box, 0.0, self.config.voxel_size, self.config.worker_count())
+        model.add_frames([(points, colors, p, weight) for (points, colors), p in zip(crops, pose)])
 
     def register(self, frame_id: str, init_pose: np.ndarray, model: ObjectModel, min_hits: int = 1, refresh_every: int = 1) -> FrameResult:
         """Register a frame to ``model`` starting from ``init_pose`` (4x4); never raises on bad data."""
