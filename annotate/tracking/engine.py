@@ -63,10 +63,13 @@ reached it, and a frame or two left unflagged between flagged frames is flagged 
 (consistency.flagged_gaps).
 
 Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures), and the independent
-work (the chains, every frame's registration in a refinement round, the rechecks, the slides) on
-``config.workers`` forked processes (workers.py): the same poses for any count. Measured on 2 cores (v5, seeds
-0-3): a laptop 164-175 -> 96-126 ms per frame, the other objects 27-65 (ranges under ``MIN_FRAMES_FOR_WORKERS``
-frames run on one process).
+work (the chains, every frame's registration in a refinement round and the first round's restarts of suspect
+frames, the rechecks, the slides, the centring spans, a model's crops, the smoothing's information matrices and
+the document's in-box shares) on ``config.workers`` forked processes (workers.py): the same poses for any count.
+Measured on 2 cores (v5, seeds 0-3): a laptop 164-175 -> 96-126 ms per frame, the other objects 27-65 (ranges
+under ``MIN_FRAMES_FOR_WORKERS`` frames, and the refinement of one frame, run on one process); the restarts, the
+crops, the matrices and the shares on the workers took laptop seed 2 from 18.7 to 15.5 s and seed 1 from 19.2 to
+17.9 s (whole process, medians of 5 alternating pairs, on a machine whose speed drifted by a third).
 """
 
 from __future__ import annotations
@@ -611,6 +614,7 @@ def _refine_one(sequence: Sequence, annotation: Annotation, frame_id: str, confi
     else:
         raise ValueError("no posed frame to start from: place a box first")
     symmetric = annotation.symmetry == "y"
+    config = replace(config, workers=1)  # one frame, its model's crops included, on this process: forking would not pay
     tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
     if others:
         here = ids.index(frame_id)

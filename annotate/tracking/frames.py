@@ -79,10 +79,14 @@ class FrameStore:
     def crops(self, requests: list[tuple[str, np.ndarray]], extents: np.ndarray, margin: float, voxel: float | None = None,
               workers: int = 1) -> list[tuple[np.ndarray, np.ndarray]]:
         """:meth:`crop` of each (frame id, pose) in ``requests``: the same arrays, with the crops not kept computed on up
-        to ``workers`` processes (workers.ordered_map) and kept here as :meth:`crop` keeps them.
+        to ``workers`` processes (workers.ordered_map) and then kept here (the cache's order of use may differ from a
+        loop of :meth:`crop`'s: which crops stay kept, not what they hold). Without a cache, on this process: a frame
+        read here and not kept would be read again on the worker.
 
         A model of 60 frames is 60 crops (a laptop: 1-3 ms each) that need nothing of each other.
         """
+        if not self.cache:
+            workers = 1
         keys = [_crop_key(f, pose, extents, margin, voxel) for f, pose in requests]
         kept = {key: self._crops[key] for key in keys if key in self._crops}  # before this batch's crops push any out
         todo, seen = [], set()

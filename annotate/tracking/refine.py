@@ -20,6 +20,7 @@ from .consistency import rotation_jumps
 from .freespace import free_space_votes
 from .smooth import registration_information, smooth_poses
 from .model import ObjectModel
+from .registration import ModelTarget
 from .propagate import predict
 from .quality import pose_difference
 from .reconcile import common_correction, interpolate, pose_log
@@ -540,7 +541,7 @@ def smooth_refined(
     target = model.target(min_hits_for(model, config))
     informed = set(trusted) | refinement_confirmed(tracker, results, chained or {})
 
-    def information_of(frame_id: str) -> np.ndarray:
+    def information_of(frame_id: str, target: ModelTarget = target) -> np.ndarray:  # bound now: ``target`` is reused below
         if frame_id not in informed:
             return np.zeros((6, 6))
         pose = results[frame_id].pose
