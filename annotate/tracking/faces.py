@@ -98,8 +98,13 @@ def _alignment_rows(m: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarra
 def _turn_onto(m: np.ndarray, a: np.ndarray, about: tuple[int, ...]) -> np.ndarray:
     """The small rotation (3x3) about the object axes ``about`` that best turns unit vectors ``m`` (N, 3) onto
     ``a`` (N, 3) (:func:`_alignment_rows`)."""
+    return _small_rotation(*_alignment_rows(m, a), about)
+
+
+def _small_rotation(rows: np.ndarray, rhs: np.ndarray, about) -> np.ndarray:
+    """The rotation (3x3) of the rotation vector w, zero but about the object axes ``about``, that solves the
+    linearised rows (K, 3) ``rows`` w ~ ``rhs`` (K,) in the least-squares sense."""
     columns = list(about)
-    rows, rhs = _alignment_rows(m, a)
     w = np.zeros(3)
     w[columns], *_ = np.linalg.lstsq(rows[:, columns], rhs, rcond=None)
     return Rotation.from_rotvec(w).as_matrix()
@@ -167,9 +172,7 @@ def hinge_rotation(normals: np.ndarray, cone_deg: float = 5.0, plane_deg: float 
         # the spin is seen only by normals with a z component (the lid, the base's front and back): where they are
         # too few, the normals' noise alone would set it, and it is left as it is
         about = [0, 1, 2] if len(p) and np.sum(p[:, 2] ** 2) >= min_spin_share * len(normals) else [0, 2]
-        w = np.zeros(3)
-        w[about], *_ = np.linalg.lstsq(rows[:, about], rhs, rcond=None)
-        rotation = Rotation.from_rotvec(w).as_matrix() @ rotation
+        rotation = _small_rotation(rows, rhs, about) @ rotation
     return rotation, shares
 
 

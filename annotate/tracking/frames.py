@@ -61,20 +61,14 @@ class FrameStore:
 
         The arrays are the caller's own (a repeated crop returns copies of the kept one).
         """
-        if self.crop_cache > 0:
-            key = _crop_key(frame_id, pose, extents, margin, voxel)
-            if key in self._crops:
-                self._crops.move_to_end(key)
-                points, colors = self._crops[key]
-            else:
-                points, colors = self._crop(frame_id, pose, extents, margin, voxel)
-                self._crops[key] = (points, colors)
-                if len(self._crops) > self.crop_cache:
-                    self._crops.popitem(last=False)
-            points, colors = points.copy(), (colors.copy() if colors is not None else None)
-        else:
+        if self.crop_cache <= 0:
             points, colors = self._crop(frame_id, pose, extents, margin, voxel)
-        return points, (colors if colors is not None else np.zeros_like(points))
+            return points, (colors if colors is not None else np.zeros_like(points))
+        key = _crop_key(frame_id, pose, extents, margin, voxel)
+        if key in self._crops:
+            self._crops.move_to_end(key)
+            return _owned(self._crops[key])
+        return _owned(self._keep(key, self._crop(frame_id, pose, extents, margin, voxel)))
 
     def crops(self, requests: list[tuple[str, np.ndarray]], extents: np.ndarray, margin: float, voxel: float | None = None,
               workers: int = 1) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -101,17 +95,21 @@ class FrameStore:
         out = []
         for key in keys:
             if key in computed:
-                points, colors = computed[key]
-                if self.crop_cache > 0:
-                    self._crops[key] = (points, colors)
-                    if len(self._crops) > self.crop_cache:
-                        self._crops.popitem(last=False)
+                crop = self._keep(key, computed[key]) if self.crop_cache > 0 else computed[key]
             else:
-                points, colors = kept[key]
+                crop = kept[key]
                 if key in self._crops:
                     self._crops.move_to_end(key)
-            out.append((points.copy(), colors.copy() if colors is not None else np.zeros_like(points)))
+            out.append(_owned(crop))
         return out
+
+    def _keep(self, key: tuple, crop: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray | None]:
+        """Keep ``crop`` (points, colours or None) under ``key``, the least recently used crop dropped beyond
+        ``crop_cache``; ``crop`` itself."""
+        self._crops[key] = crop
+        if len(self._crops) > self.crop_cache:
+            self._crops.popitem(last=False)
+        return crop
 
     def _crop(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`crop`'s points and colours (None without colours)."""
@@ -150,6 +148,12 @@ class FrameStore:
             points = np.asarray(cloud.points)
             colors = np.asarray(cloud.colors) if colors is not None else None
         return points, colors
+
+
+def _owned(crop: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray]:
+    """A kept crop's points and colours as the caller's own arrays (zeros for colours without colours)."""
+    points, colors = crop
+    return points.copy(), (colors.copy() if colors is not None else np.zeros_like(points))
 
 
 def _crop_key(frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None) -> tuple:

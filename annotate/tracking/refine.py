@@ -38,7 +38,7 @@ def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int,
         ids = [ids[i] for i in picks]
     ids = list(dict.fromkeys(list(ids) + [m for m in always if m in poses]))
     model = tracker.new_model()
-    tracker.add_to_model(model, ids, [poses[f] for f in ids])
+    tracker.add_frames_to_model(model, ids, [poses[f] for f in ids])
     config = tracker.config
     if free_space and config.free_space_tolerance > 0 and len(model):
         # a voxel the frames see through more often than they see it is not rigid with the object (a hand)

@@ -43,13 +43,15 @@ class Tracker:
         margin = self.config.crop_margin if margin is None else margin
         return self.store.crop(frame_id, pose, self.box, margin, self.config.voxel_size)
 
-    def add_to_model(self, model: ObjectModel, frame_id: str | list[str], pose: np.ndarray | list[np.ndarray], weight: int = 1) -> None:
-        """Add the frame (or the frames, in order, with their poses) cropped by the box at its pose to ``model``."""
-        if isinstance(frame_id, str):
-            model.add_frame(*self.crop(frame_id, pose, margin=0.0), pose, weight)
-            return
-        crops = self.store.crops(list(zip(frame_id, pose)), self.box, 0.0, self.config.voxel_size, self.config.worker_count())
-        model.add_frames([(points, colors, p, weight) for (points, colors), p in zip(crops, pose)])
+    def add_to_model(self, model: ObjectModel, frame_id: str, pose: np.ndarray, weight: int = 1) -> None:
+        """Add the frame cropped by the box at ``pose`` (4x4) to ``model``."""
+        model.add_frame(*self.crop(frame_id, pose, margin=0.0), pose, weight)
+
+    def add_frames_to_model(self, model: ObjectModel, frame_ids: list[str], poses: list[np.ndarray], weight: int = 1) -> None:
+        """Add the frames, in order, each cropped by the box at its pose, to ``model``: the crops on the workers
+        (FrameStore.crops) and one merge (ObjectModel.add_frames)."""
+        crops = self.store.crops(list(zip(frame_ids, poses)), self.box, 0.0, self.config.voxel_size, self.config.worker_count())
+        model.add_frames([(points, colors, pose, weight) for (points, colors), pose in zip(crops, poses)])
 
     def register(self, frame_id: str, init_pose: np.ndarray, model: ObjectModel, min_hits: int = 1, refresh_every: int = 1) -> FrameResult:
         """Register a frame to ``model`` starting from ``init_pose`` (4x4); never raises on bad data."""
