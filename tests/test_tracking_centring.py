@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import render_tracker
+from test_tracking_render import object_offset, posed_off
 
 from annotate.tracking.centring import centre_offsets, centred, extent_along
 from annotate.tracking.engine import _centred_on_hinge
@@ -38,12 +38,9 @@ def test_a_centred_pose_moves_its_box_centre_along_its_own_axis():
 
 @pytest.mark.slow
 def test_frames_carried_along_the_hinge_are_brought_back_to_the_middle_of_its_ends(rendered_laptop):
-    sequence, mesh, truth = rendered_laptop
-    tracker = render_tracker(sequence, mesh)
-    ids = sorted(truth)
-    slid = np.eye(4)
-    slid[0, 3] = 0.012  # every box 12 mm along the hinge: the model of all frames comes out shifted alike
-    poses = {f: truth[f] @ slid for f in ids}
+    _, mesh, truth = rendered_laptop
+    # every box 12 mm along the hinge: the model of all frames comes out shifted alike
+    tracker, ids, poses = posed_off(rendered_laptop, object_offset(translation_m=(0.012, 0.0, 0.0)))
     model = build_model(tracker, poses, len(ids), [ids[0]])
     target = model.target(min_hits_for(model, tracker.config))
     x = np.array([1.0, 0.0, 0.0])
@@ -60,13 +57,10 @@ def test_frames_carried_along_the_hinge_are_brought_back_to_the_middle_of_its_en
 
 @pytest.mark.slow
 def test_the_engine_centres_along_the_snapped_hinge_before_the_snap(rendered_laptop):
-    sequence, mesh, truth = rendered_laptop
-    tracker = render_tracker(sequence, mesh)
-    ids = sorted(truth)
-    slid, tilt = np.eye(4), np.eye(4)
-    slid[0, 3] = 0.015
-    tilt[:3, :3] = Rotation.from_rotvec(np.radians([0.0, 4.0, 4.0])).as_matrix()
-    poses = {f: truth[f] @ slid @ tilt for f in ids}  # the boxes slid along the hinge, then turned off it
+    truth = rendered_laptop[2]
+    tilt = object_offset(rotvec_deg=(0.0, 4.0, 4.0))
+    # the boxes slid along the hinge, then turned off it
+    tracker, ids, poses = posed_off(rendered_laptop, object_offset(translation_m=(0.015, 0.0, 0.0)) @ tilt)
     snap = np.linalg.inv(tilt)  # the hinge snap that turns them back (engine: poses @ snap, after the centring)
     model = build_model(tracker, poses, len(ids), [ids[0]])
     out = _centred_on_hinge(tracker, ids, poses, snap, model)

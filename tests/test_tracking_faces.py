@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from test_tracking_render import render_tracker
+from test_tracking_render import object_offset, posed_off, render_tracker
 
 from annotate.tracking import TrackingConfig
 from annotate.tracking.engine import _snap_faces, _snap_hinge
@@ -72,11 +72,7 @@ def test_too_few_normals_in_the_cones_give_no_rotation():
 @pytest.mark.slow
 def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(rendered_camera):
     sequence, mesh, truth = rendered_camera
-    tracker = render_tracker(sequence, mesh)
-    ids = sorted(truth)
-    tilt = np.eye(4)
-    tilt[:3, :3] = Rotation.from_rotvec(np.radians(2.5) * np.array([0.6, 0.0, 0.8])).as_matrix()
-    poses = {f: truth[f] @ tilt for f in ids}  # every box off as the placed boxes' mean error leaves it
+    tracker, ids, poses = posed_off(rendered_camera, object_offset(rotvec_deg=2.5 * np.array([0.6, 0.0, 0.8])))
     snap = _snap_faces(tracker, poses, [ids[0]])
     assert snap is not None
     assert np.array_equal(snap[:3, 3], np.zeros(3)), "a rotation about the box centre"
@@ -178,11 +174,7 @@ def test_shapes_that_are_not_hinged_fall_short_of_the_shares():
 @pytest.mark.slow
 def test_laptop_boxes_tilted_together_are_turned_back_onto_its_base_and_lid(rendered_laptop):
     sequence, mesh, truth = rendered_laptop
-    tracker = render_tracker(sequence, mesh)
-    ids = sorted(truth)
-    tilt = np.eye(4)
-    tilt[:3, :3] = Rotation.from_rotvec(np.radians([1.5, -1.2, 1.0])).as_matrix()  # 2.2 deg
-    poses = {f: truth[f] @ tilt for f in ids}
+    tracker, ids, poses = posed_off(rendered_laptop, object_offset(rotvec_deg=(1.5, -1.2, 1.0)))  # 2.2 deg
     model = build_model(tracker, poses, len(ids), [ids[0]])
     snap = _snap_hinge(tracker, model)
     assert snap is not None

@@ -36,6 +36,24 @@ def render_tracker(sequence, mesh: trimesh.Trimesh, **settings) -> Tracker:
     return Tracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
 
 
+def object_offset(rotvec_deg=(0.0, 0.0, 0.0), translation_m=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """A 4x4 object-frame change (``pose @ offset``): the rotation of the rotation vector ``rotvec_deg`` (deg, object
+    axes) and the translation ``translation_m`` (m)."""
+    offset = np.eye(4)
+    offset[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    offset[:3, 3] = translation_m
+    return offset
+
+
+def posed_off(scene, offset: np.ndarray, **settings) -> tuple[Tracker, list[str], dict[str, np.ndarray]]:
+    """A rendered ``scene`` (sequence, mesh, truth) whose boxes are all off by the same object-frame ``offset`` (4x4),
+    as the placed boxes' mean error leaves them: its tracker (:func:`render_tracker` with ``settings``), its frame ids
+    in order and those poses."""
+    sequence, mesh, truth = scene
+    ids = sorted(truth)
+    return render_tracker(sequence, mesh, **settings), ids, {f: truth[f] @ offset for f in ids}
+
+
 def _o3d_mesh(mesh: trimesh.Trimesh) -> o3d.t.geometry.TriangleMesh:
     legacy = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices), o3d.utility.Vector3iVector(mesh.faces))
     return o3d.t.geometry.TriangleMesh.from_legacy(legacy)
