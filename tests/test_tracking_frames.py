@@ -101,3 +101,42 @@ def test_a_batch_of_crops_equals_the_crops_one_by_one_on_worker_processes():
     again = store.crop("f19", poses[19], extents, 0.0, 0.004)
     np.testing.assert_array_equal(again[0], expected[19][0])
     assert store.sequence.reads == 20  # every frame read once, here (not on a worker): f0 before the batch, 19 in it
+
+
+class _VariedSequence(_WallSequence):
+    """A wall whose depth differs per frame (1 m + frame number mm); frames named "bad*" fail to read."""
+
+    def depth(self, frame_id: str) -> np.ndarray:
+        from sequences.errors import InputError
+
+        self.reads += 1
+        if frame_id.startswith("bad"):
+            raise InputError(f"/seq/depth/{frame_id}.png", "unreadable or corrupt image")
+        return np.full((self.camera.height, self.camera.width), 1.0 + int(frame_id) / 1000, np.float32)
+
+
+def test_frames_preloaded_on_threads_equal_frames_read_one_by_one():
+    ids = ["3", "bad1", "1", "7", "3", "bad0", "2"]  # a repeat and two unreadable frames
+    one, threaded = _VariedSequence(1.0), _VariedSequence(1.0)
+    loop = FrameStore(one, stride=2, colors=True)
+    for f in ids:
+        loop.image(f)
+    store = FrameStore(threaded, stride=2, colors=True)
+    store.image("7")  # kept already: not read again
+    store.preload(ids, threads=2)
+    assert threaded.reads == 6, "each frame read once, the kept one not again"
+    for f in set(ids):
+        depth, color = store.image(f)
+        assert np.array_equal(depth, loop.image(f)[0]) and depth.dtype == np.float32
+        assert (color is None) == (loop.image(f)[1] is None)
+        if color is not None:
+            assert np.array_equal(color, loop.image(f)[1])
+    assert threaded.reads == 6, "image() serves the preloaded frames"
+    assert float(store.image("2")[0][0, 0]) == np.float32(1.002)
+    # the read errors, noted in the order given, the unreadable frames empty
+    assert list(store.errors) == ["bad1", "bad0"] and store.errors == loop.errors
+    assert not store.image("bad1")[0].any()
+    # without a cache nothing would be kept: nothing is read
+    uncached = _VariedSequence(1.0)
+    FrameStore(uncached, stride=2, cache=False).preload(ids, threads=2)
+    assert uncached.reads == 0

@@ -403,8 +403,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     if workers > 1:
         # every frame read here once, before the first fork: the workers inherit the images (and any read error)
         # instead of each reading them again
-        for frame_id in ids:
-            tracker.store.image(frame_id)
+        tracker.store.preload(ids, workers)
     # the chains are independent of each other: each on its own process where there are several cores
     segments = [ids[a : b + 1] for a, b in zip(a_idx, a_idx[1:])]
     chains = _run_chains(chaining, [job for s in segments for job in ((s, placed[s[0]]), (s[::-1], placed[s[-1]]))], workers, steps)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import open3d as o3d
@@ -41,15 +42,40 @@ class FrameStore:
         """Subsampled depth (h, w) float32 metres (0 = none) and colours (h, w, 3) float32 0..1 or None."""
         if frame_id in self._frames:
             return self._frames[frame_id]
+        return self._store(frame_id, self._read(frame_id))
+
+    def preload(self, frame_ids: list[str], threads: int = 1) -> None:
+        """Read and keep the frames not kept yet, decoding up to ``threads`` at a time: the image decoders release
+        the GIL (measured: 100 laptop depth frames in 0.73-0.86 s on one thread, 0.46-0.53 s on two, the same
+        arrays). The frames are kept, and their errors noted, in the order given."""
+        if not self.cache:
+            return  # nothing would be kept
+        todo = list(dict.fromkeys(f for f in frame_ids if f not in self._frames))
+        if threads <= 1 or len(todo) < 2:
+            for frame_id in todo:
+                self.image(frame_id)
+            return
+        # the threads end before this returns: none is left running when the tracker forks its workers
+        with ThreadPoolExecutor(min(int(threads), len(todo))) as pool:
+            for frame_id, read in zip(todo, pool.map(self._read, todo)):
+                self._store(frame_id, read)
+
+    def _read(self, frame_id: str) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+        """A frame's subsampled depth and colours (None without colours), and its read error (None if read)."""
         s = self.stride
         try:
             depth = np.ascontiguousarray(self.sequence.depth(frame_id)[::s, ::s])
             color = np.ascontiguousarray(self.sequence.color(frame_id)[::s, ::s]).astype(np.float32) / 255.0 if self.colors else None
+            return depth, color, None
         except InputError as error:  # a corrupt or empty frame: no points, the frame gets flagged
-            self.errors[frame_id] = str(error)
             camera = self.sequence.camera
-            depth = np.zeros(((camera.height + s - 1) // s, (camera.width + s - 1) // s), np.float32)
-            color = None
+            return np.zeros(((camera.height + s - 1) // s, (camera.width + s - 1) // s), np.float32), None, str(error)
+
+    def _store(self, frame_id: str, read: tuple[np.ndarray, np.ndarray | None, str | None]) -> tuple[np.ndarray, np.ndarray | None]:
+        """Note a read's error and keep its images (with the cache on); the images."""
+        depth, color, error = read
+        if error is not None:
+            self.errors[frame_id] = error
         out = (depth, color)
         if self.cache:
             self._frames[frame_id] = out
