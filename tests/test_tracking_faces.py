@@ -73,7 +73,7 @@ def test_too_few_normals_in_the_cones_give_no_rotation():
 def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(rendered_camera):
     sequence, mesh, truth = rendered_camera
     tracker, ids, poses = posed_off(rendered_camera, object_offset(rotvec_deg=2.5 * np.array([0.6, 0.0, 0.8])))
-    snap = _snap_faces(tracker, poses, [ids[0]])
+    snap = _snap_faces(tracker, build_model(tracker, poses, tracker.config.max_global_frames, [ids[0]]))
     assert snap is not None
     assert np.array_equal(snap[:3, 3], np.zeros(3)), "a rotation about the box centre"
     left = [_angle_deg((poses[f] @ snap)[:3, :3].T @ truth[f][:3, :3]) for f in ids]
@@ -81,7 +81,8 @@ def test_camera_boxes_tilted_together_are_turned_back_onto_its_faces(rendered_ca
     # faces, and the model's normals lean over their edges within the 10 deg cones (0.11 deg with 4 deg cones)
     assert max(left) < 0.8, left
     # a turn beyond max_face_snap_deg is not the placed boxes' error: refused
-    assert _snap_faces(render_tracker(sequence, mesh, max_face_snap_deg=1.0), poses, [ids[0]]) is None
+    strict = render_tracker(sequence, mesh, max_face_snap_deg=1.0)
+    assert _snap_faces(strict, build_model(strict, poses, strict.config.max_global_frames, [ids[0]])) is None
 
 
 def _bowl_normals(count: int = 20000, seed: int = 0) -> np.ndarray:

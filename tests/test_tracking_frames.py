@@ -1,8 +1,7 @@
-"""FrameStore crops: the points of a known wall inside a box, and repeated crops (kept ones) as the caller's own arrays."""
+"""FrameStore crops: the points of a known wall inside a box, and repeated crops (kept ones) as the caller's own arrays;
+frames read ahead on threads (preload) as read one by one."""
 
 from __future__ import annotations
-
-from types import SimpleNamespace
 
 import numpy as np
 

@@ -210,10 +210,9 @@ def _usable_axis(fit: _AxisFit | None, config: TrackingConfig) -> tuple[np.ndarr
     return fit.axis, fit.point
 
 
-def _model_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-    """The axis (unit direction, point; object frame) fitted to the model of ``poses`` (``model``, where built
-    already), or None where the fit is unreliable (:func:`_usable_axis`)."""
-    model = model if model is not None else build_model(tracker, poses, tracker.config.max_global_frames, anchors)
+def _model_axis(tracker: Tracker, model: ObjectModel) -> tuple[np.ndarray, np.ndarray] | None:
+    """The axis (unit direction, point; object frame) fitted to ``model``, or None where the fit is unreliable
+    (:func:`_usable_axis`)."""
     return _usable_axis(_fit_axis(tracker, model), tracker.config)
 
 
@@ -248,10 +247,10 @@ def _snap_flat(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     return _rotation_snap(rotation, config)
 
 
-def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
+def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     """Correction (4x4, a rotation about the box centre) turning the box's y onto the axis of a near-round body
-    fitted to the model (a mug's body: its handle an outlier to the fit), or None if unreliable."""
-    fitted = _model_axis(tracker, poses, anchors, model)
+    fitted to ``model`` (a mug's body: its handle an outlier to the fit), or None if unreliable."""
+    fitted = _model_axis(tracker, model)
     if fitted is None:
         return None
     snap = snap_upright(np.eye(4), *fitted)
@@ -259,12 +258,10 @@ def _snap_body_axis(tracker: Tracker, poses: dict[str, np.ndarray], anchors: lis
     return snap
 
 
-def _snap_faces(tracker: Tracker, poses: dict[str, np.ndarray], anchors: list[str], model: ObjectModel | None = None) -> np.ndarray | None:
-    """Correction (4x4, a rotation about the box centre) turning the box onto the faces of the model of ``poses``
-    (``model``, where built already; faces.py), or None where the model is not box-like or the turn exceeds
-    ``max_face_snap_deg``."""
+def _snap_faces(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
+    """Correction (4x4, a rotation about the box centre) turning the box onto the faces of ``model`` (faces.py), or
+    None where the model is not box-like or the turn exceeds ``max_face_snap_deg``."""
     config = tracker.config
-    model = model if model is not None else build_model(tracker, poses, config.max_global_frames, anchors)
     normals = np.asarray(model.target(min_hits_for(model, config)).cloud.normals)
     rotation, counts = face_rotation(normals)
     if rotation is None or not box_like(counts, len(normals), config.min_face_share, config.min_faces_total):
@@ -526,7 +523,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         model = build_model(tracker, poses, config.max_global_frames, anchors)
         # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;
         # cameras pass the roundness test too, so the faces are asked first)
-        snap = _snap_faces(tracker, poses, anchors, model) if config.face_snap else None
+        snap = _snap_faces(tracker, model) if config.face_snap else None
         hinged = False
         if snap is None and config.hinge_snap and not nearly_round:
             snap = _snap_hinge(tracker, model)
@@ -535,7 +532,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # the placed boxes' mean tilt is off by their errors' mean (1-1.7 deg); the body's axis, fitted to the
             # model, is not (v5 mugs, seeds 1-7, 4 manual frames off by up to 3 deg: medians 1.37, 1.00, 1.00, 1.82,
             # 1.20, 1.49, 1.66 -> 1.11, 0.85, 1.08, 1.72, 0.89, 1.34, 1.02 deg; seed 0 and 3 manual frames: refused)
-            snap = _snap_body_axis(tracker, poses, anchors, model)
+            snap = _snap_body_axis(tracker, model)
         if hinged and config.hinge_centring:
             # ... and its centre along the hinge from the ends each frame sees, which the ICP leaves free (centring.py)
             poses = _centred_on_hinge(tracker, ids, poses, snap, model)
