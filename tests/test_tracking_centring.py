@@ -20,8 +20,14 @@ def test_offsets_are_the_median_middle_of_the_frames_that_saw_both_ends():
     # the median of frames 5 and 7
     expected = [0.011, 0.011, 0.0115, 0.011, 0.009, 0.009, 0.0025, -0.005, -0.005]
     assert np.allclose(offsets, expected, atol=1e-12)
-    # no frame saw both ends within the window: left where it is
-    assert np.array_equal(centre_offsets([(0.30, 0.01), (0.20, 0.05), (0.20, 0.05), (0.20, 0.05)], 0.005, 1), [0.01, 0.01, 0.0, 0.0])
+    # no frame saw both ends within the window: the offset of the stretch it lies in, interpolated between the
+    # nearest frames that have one (frames 2 and 3 between frames 1 and 4), held past the last one
+    short = (0.20, 0.05)
+    offsets = centre_offsets([(0.30, 0.01), short, short, short, short, (0.30, 0.03)], 0.005, 1)
+    assert np.allclose(offsets, [0.01, 0.01, 0.01 + 0.02 / 3, 0.01 + 0.04 / 3, 0.03, 0.03], atol=1e-15)
+    assert np.array_equal(centre_offsets([(0.30, 0.01), short, short, short], 0.005, 1), [0.01, 0.01, 0.01, 0.01])
+    assert np.array_equal(centre_offsets([None, None, (0.30, 0.01), None, None], 0.005, 1), [0.01] * 5)
+    # no span at all: every frame left where it is
     assert np.array_equal(centre_offsets([None, None], 0.005, 2), [0.0, 0.0])
 
 
