@@ -73,7 +73,7 @@ def centre_offsets(spans: list[tuple[float, float] | None], tolerance: float, wi
     75th percentile of all spans). A frame without such a span about it shares its stretch's offset, interpolated
     between the nearest frames that have one on either side and held beyond the first and last (measured: laptop
     seed 3's frames 82-85, 15 mm off along the hinge where their neighbours were corrected to 3-5 mm, came to 5 mm);
-    0 everywhere where no frame saw both ends."""
+    0 everywhere where no frame has a span."""
     widths = np.array([s[0] if s is not None else np.nan for s in spans])
     middles = np.array([s[1] if s is not None else np.nan for s in spans])
     if not np.any(np.isfinite(widths)):
@@ -85,11 +85,8 @@ def centre_offsets(spans: list[tuple[float, float] | None], tolerance: float, wi
         near = seen[max(0, i - window) : i + window + 1]
         if np.any(np.isfinite(near)):
             offsets[i] = float(np.nanmedian(near))
+    # never empty: the widest span is at least the 75th percentile, so its own frame has an offset
     measured = np.flatnonzero(np.isfinite(offsets))
-    if len(measured) == 0:
-        return np.zeros(len(spans))
-    # a frame with no full span about it shares the offset of the stretch it lies in: interpolated between the
-    # nearest measured frames on either side (held beyond the first and last)
     return np.interp(np.arange(len(spans)), measured, offsets[measured])
 
 
