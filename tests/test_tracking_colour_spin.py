@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from annotate.tracking.colour_spin import COLOUR_RADIUS, SPIN_GRID_DEG, ColourModel, ColourSpinCheck, preferred_spin, spin_matrix
+from annotate.tracking.colour_spin import COLOUR_RADIUS, RADIAL_WEIGHT, SPIN_GRID_DEG, ColourModel, ColourSpinCheck, preferred_spin, spin_matrix
 from annotate.tracking.config import TrackingConfig
 from evaluate.geometry import rotation_about_y
 from sequences.camera import Camera
@@ -161,10 +161,39 @@ def test_a_frame_whose_colours_prefer_another_spin_is_flagged():
 
 
 def test_the_colour_model_compares_each_pixel_with_the_nearest_model_pixel_within_its_radius():
-    model = ColourModel([(np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([[0.5, 0.25, 0.25], [0.2, 0.2, 0.6]]))])
-    near = 0.5 * COLOUR_RADIUS
-    pixels = np.array([[near, 0.0, 0.0], [0.01, near, 0.0], [0.005, 0.0, 0.0]])  # the last one is near no model pixel
+    # two model pixels on a cylinder of radius 4 cm about y, 0.01 rad apart (0.4 mm): in 3D they are the nearest
+    # ones within COLOUR_RADIUS
+    a = np.array([0.0, 0.01])
+    model_points = RADIUS * np.stack([np.sin(a), np.zeros(2), np.cos(a)], axis=1)
+    model = ColourModel([(model_points, np.array([[0.5, 0.25, 0.25], [0.2, 0.2, 0.6]]))], np.array([0.0, 1.0, 0.0]), np.zeros(3))
+    assert model.radius == pytest.approx(RADIUS)
+    far = 0.2  # rad: 8 mm along the surface, near no model pixel
+    pixels = np.array([model_points[0] + [0.0, 0.5 * COLOUR_RADIUS, 0.0], model_points[1], RADIUS * np.array([np.sin(far), 0.0, np.cos(far)])])
     chroma = np.array([[0.4, 0.3, 0.3], [0.2, 0.2, 0.6], [1.0, 0.0, 0.0]])
-    # L1 differences 0.2 and 0 over the two pixels that meet a model pixel
-    assert model.cost(pixels, chroma, 2) == pytest.approx(0.1)
-    assert model.cost(pixels, chroma, 3) == np.inf, "too few pixels meet the model: no evidence"
+    for cylinder in (False, True):
+        # L1 differences 0.2 and 0 over the two pixels that meet a model pixel
+        assert model.cost(pixels, chroma, 2, cylinder) == pytest.approx(0.1)
+        assert model.cost(pixels, chroma, 3, cylinder) == np.inf, "too few pixels meet the model: no evidence"
+
+
+def test_on_the_cylinder_a_pixel_moved_across_the_surface_meets_the_model_pixel_at_its_angle_and_height():
+    model = ColourModel([(np.array([[0.0, 0.0, RADIUS]]), np.array([[0.5, 0.25, 0.25]]))], np.array([0.0, 1.0, 0.0]), np.zeros(3))
+    # depth noise: 3 mm out from the axis, beyond COLOUR_RADIUS in 3D, 0.9 mm on the cylinder (RADIAL_WEIGHT 0.3)
+    across = np.array([[0.0, 0.0, RADIUS + 0.003]])
+    assert np.linalg.norm(model.embed(across) - model.embed(model.points)) == pytest.approx(RADIAL_WEIGHT * 0.003)
+    assert model.cost(across, np.array([[0.5, 0.25, 0.25]]), 1, cylinder=False) == np.inf
+    assert model.cost(across, np.array([[0.4, 0.3, 0.3]]), 1) == pytest.approx(0.2)
+    # ... but 3 mm along the surface (an angle of 0.075 rad) or up the axis it meets nothing
+    along = np.array([[RADIUS * np.sin(0.075), 0.0, RADIUS * np.cos(0.075)], [0.0, 0.003, RADIUS]])
+    for pixel in along:
+        assert model.cost(pixel[None], np.array([[0.5, 0.25, 0.25]]), 1) == np.inf
+
+
+def test_the_spin_is_sought_near_the_3d_lookups_verdict_where_the_label_repeats():
+    flat = np.ones(len(SPIN_GRID_DEG))
+    aliased = flat.copy()
+    aliased[SPIN_GRID_DEG == -40.0] = 0.8  # the spin that undoes the error
+    aliased[SPIN_GRID_DEG == 38.0] = 0.7  # the label's pattern repeated, matching a little better
+    assert preferred_spin([aliased]) == 38.0
+    assert preferred_spin([aliased], near=-37.0) == -40.0
+    assert preferred_spin([aliased], near=0.0) == 0.0, "no clearly better angle within FINE_DEG of the pose"
