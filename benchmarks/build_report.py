@@ -38,7 +38,6 @@ if str(REPO) not in sys.path:
 
 from annotate.tracking.config import TrackingConfig  # noqa: E402
 from annotate.tracking.engine import track_sequence  # noqa: E402
-from evaluate.geometry import shapenet_to_raw_pose  # noqa: E402
 from reconstruct.export import export_redwood  # noqa: E402
 from reconstruct.pipeline import Reconstruction, reconstruct_sequence  # noqa: E402
 from sequences.annotation import save_annotation  # noqa: E402

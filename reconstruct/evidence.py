@@ -26,7 +26,6 @@ one); bowls are open too but symmetric, and their rings fill and carve the unsee
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from .meshing import fill_holes, largest_component
 

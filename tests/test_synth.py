@@ -127,7 +127,6 @@ def test_dropout_grows_at_grazing_angles(mug):
 def test_wall_noise_matches_the_model(mug):
     seq = open_sequence(mug)
     truth = load_truth(mug)
-    camera = seq.camera
     for frame_id in truth.ids[:3]:
         depth = seq.depth(frame_id).astype(np.float64)
         patch = depth[:60, :100]  # top-left corner: the wall

@@ -261,7 +261,6 @@ def _shoelace_moments(ps, pr, feasible, count, rows, width, moments) -> None:
     and summed by the shoelace formula (scratch arrays from :data:`_WORKSPACE`).
     """
     ws = _WORKSPACE
-    n = len(ps)
     selected = np.flatnonzero(rows)
     m = len(selected)
     count = np.where(rows, count, 0)
