@@ -273,9 +273,10 @@ class ColourSpinCheck:
 class ColourModel:
     """The object's colours: the pixels of frames whose spin the geometry fixes, object frame, with their chromaticities.
 
-    Pixels are looked up on the cylinder about the line ``axis`` through ``point`` (object frame): a pixel at angle
-    phi, height h and distance rho from the axis sits at (R0 cos phi, R0 sin phi, h, RADIAL_WEIGHT (rho - R0)), with
-    R0 the model pixels' median distance; a spin about the axis moves along the surface, not across it.
+    Pixels are looked up in 3D (where to look: the label's repeat does not match there) or on the cylinder about the
+    line ``axis`` through ``point`` (object frame; the angle): a pixel at angle phi, height h and distance rho from
+    the axis sits at (R0 cos phi, R0 sin phi, h, RADIAL_WEIGHT (rho - R0)), with R0 the model pixels' median
+    distance, so that a pixel's depth noise, across the surface, counts for little.
     """
 
     def __init__(self, views: list[tuple[np.ndarray, np.ndarray]], axis: np.ndarray, point: np.ndarray) -> None:
