@@ -264,8 +264,10 @@ class ColourSpinCheck:
         fits = np.array([self._fitness(self._spun(local, deg)) for deg in SPIN_GRID_DEG])
         k0 = int(np.argmin(np.abs(SPIN_GRID_DEG)))
         # colours are compared only where the geometry leaves the spin free
-        costs = np.array([[model.cost(self._spun(q, deg), chroma, config.min_points // 4, cylinder) if fit >= fits[k0] - SPIN_FIT_MARGIN else np.inf
-                           for deg, fit in zip(SPIN_GRID_DEG, fits)] for cylinder in (False, True)])
+        costs = np.full((2, len(SPIN_GRID_DEG)), np.inf)
+        for k in np.flatnonzero(fits >= fits[k0] - SPIN_FIT_MARGIN):
+            spun = self._spun(q, SPIN_GRID_DEG[k])  # once per angle, for both lookups
+            costs[:, k] = [model.cost(spun, chroma, config.min_points // 4, cylinder) for cylinder in (False, True)]
         if not np.all(np.isfinite(costs[:, k0])) or np.any(costs[:, k0] <= 0):
             return np.full((2, len(SPIN_GRID_DEG)), np.nan)  # no colour evidence at the pose itself: this frame says nothing
         return costs / costs[:, k0:k0 + 1]
