@@ -40,7 +40,8 @@
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
-   the box centre (which the handle keeps off the axis); a box-like body (a camera) onto its faces (faces.py); a
+   the box centre (which the handle keeps off the axis), and that centre moved square across onto the plane of the
+   axis and the handle (handle.py); a box-like body (a camera) onto its faces (faces.py); a
    hinged one (a laptop) its y onto its base's faces and its x square to its lid's (faces.hinge_rotation), and each
    frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
@@ -92,6 +93,7 @@ from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .centring import centre_offsets, centred, extent_along
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
+from .handle import onto_handle_plane
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model, undo_smoothing_bends
 from .slide import against_the_motion, shifted, slide_corrections
@@ -248,13 +250,25 @@ def _snap_flat(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
 
 
 def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
-    """Correction (4x4, a rotation about the box centre) turning the box's y onto the axis of a near-round body
-    fitted to ``model`` (a mug's body: its handle an outlier to the fit), or None if unreliable."""
-    fitted = _model_axis(tracker, model)
-    if fitted is None:
-        return None
-    snap = snap_upright(np.eye(4), *fitted)
-    snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): it stays where it is
+    """Correction (4x4) turning the box's y onto the axis of a near-round body fitted to ``model`` (a mug's body: its
+    handle an outlier to the fit), about the box centre, and moving that centre square across onto the plane of the
+    axis and the handle (handle.py); None where neither is reliable."""
+    config = tracker.config
+    fit = _fit_axis(tracker, model)
+    fitted = _usable_axis(fit, config)
+    snap = None
+    if fitted is not None:
+        snap = snap_upright(np.eye(4), *fitted)
+        snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): along the handle it stays where it is
+    if config.handle_plane_centring and fit is not None and np.degrees(np.arccos(np.clip(fit.axis[1], -1, 1))) <= 10.0:
+        # an ill-conditioned fit leaves the axis's tilt doubtful, not where it crosses the box's middle: the plane
+        # through it and the handle holds the box centre (measured on v5 mug seeds 0 and 1, conditioning 0.17 and
+        # 0.20: see handle.py)
+        points, _ = model.points(min_hits_for(model, config))
+        shift = onto_handle_plane(points, fit.axis, fit.point, config.max_handle_shift_m)
+        if shift is not None:
+            snap = np.eye(4) if snap is None else snap
+            snap[:3, 3] = shift
     return snap
 
 
