@@ -81,6 +81,9 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
         return _loop(function, items, done)
     _job = (function, items)
     pool = None
+    # the children alive before the pool: the pool's workers are the ones that come after (multiprocessing's public
+    # record of a process's children; no other map forks meanwhile, _forking is held)
+    others = set(multiprocessing.active_children())
     try:
         try:
             pool = ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("fork"), initializer=_mark_worker)
@@ -90,7 +93,7 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
                 warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
                 results = pool.map(_call, range(len(items)))  # submits every item: the workers are forked here
         except OSError:  # a fork refused (memory, process slots): end those already forked, and do the work here
-            _abandon(pool)
+            _abandon(pool, others)
             return _loop(function, items, done)
         try:
             out = []
@@ -99,11 +102,11 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
                 if done is not None:
                     done(item, result)
         except BrokenProcessPool as error:
-            _abandon(pool)
+            _abandon(pool, others)
             raise WorkerDied("a tracking worker process died (killed, as by the out-of-memory killer, or crashed); "
                              "tracking on one process (annotate --track --workers 1, TrackingConfig.workers = 1) avoids it") from error
         except BaseException:
-            _abandon(pool)
+            _abandon(pool, others)
             raise
         pool.shutdown()
         return out
@@ -112,20 +115,18 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
         _forking.release()
 
 
-def _abandon(pool: ProcessPoolExecutor | None) -> None:
+def _abandon(pool: ProcessPoolExecutor | None, others: set) -> None:
     """Drop a pool's pending items and end its workers now (an error, or a fork that failed partway, whose
-    forked workers nothing would ever end: the interpreter would wait for them at exit)."""
+    forked workers nothing would ever end: the interpreter would wait for them at exit). ``others``: the children
+    of this process alive before the pool was made, left alone."""
     if pool is None:
         return
-    processes = list((getattr(pool, "_processes", None) or {}).values())  # the executor's own record of its workers
-    manager = getattr(pool, "_executor_manager_thread", None)  # it reaps the workers of a broken pool
     pool.shutdown(wait=False, cancel_futures=True)
+    processes = [process for process in multiprocessing.active_children() if process not in others]
     for process in processes:
         process.terminate()
     for process in processes:
         process.join(5)
-    if manager is not None:
-        manager.join(5)
 
 
 def counting(progress: Callable[[int, int], None] | None, total: int) -> Callable[[object, object], None] | None:
