@@ -212,12 +212,6 @@ def _usable_axis(fit: _AxisFit | None, config: TrackingConfig) -> tuple[np.ndarr
     return fit.axis, fit.point
 
 
-def _model_axis(tracker: Tracker, model: ObjectModel) -> tuple[np.ndarray, np.ndarray] | None:
-    """The axis (unit direction, point; object frame) fitted to ``model``, or None where the fit is unreliable
-    (:func:`_usable_axis`)."""
-    return _usable_axis(_fit_axis(tracker, model), tracker.config)
-
-
 def _snap_symmetric(tracker: Tracker, fit: _AxisFit | None) -> np.ndarray | None:
     """Correction (4x4) putting the box's y on the symmetry axis of ``fit``, or None if unreliable."""
     fitted = _usable_axis(fit, tracker.config)

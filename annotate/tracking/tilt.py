@@ -2,7 +2,7 @@
 
 A shallow bowl is close to a sphere: a frame's points pin its tilt (the direction of its axis) only through the
 few flat faces across the axis, its foot and its inner bottom, which point-to-plane registration weighs no more
-than the curved wall. The axis fit to the model is refused for such a shape (engine._model_axis), so every frame
+than the curved wall. The axis fit to the model is refused for such a shape (engine._usable_axis), so every frame
 keeps the tilt the chains and the smoothing gave it, off by 2-4 deg over whole stretches (v5 bowl seed 1, 3 manual
 frames). A frame that sees a flat face measures its tilt directly: the normals of its own points within
 ``cone_deg`` of the object's y are turned onto y (faces.tilt_onto_axis, about x and z only; the spin is free).
