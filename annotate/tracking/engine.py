@@ -206,10 +206,15 @@ def _usable_axis(fit: _AxisFit | None, config: TrackingConfig) -> tuple[np.ndarr
         # body measured so too (v5 seed 0, 3 manual frames off by up to 3 deg: conditioning 0.25, median 1.26 ->
         # 1.71 deg when snapped past this gate)
         return None
-    # a large correction means the fit went wrong (a hand, a partial view), not that the boxes are 10 deg off
-    if np.degrees(np.arccos(np.clip(fit.axis[1], -1, 1))) > 10.0:
+    if not _near_box_y(fit):
         return None
     return fit.axis, fit.point
+
+
+def _near_box_y(fit: _AxisFit) -> bool:
+    """Whether the fitted axis lies within 10 deg of the box's y: a larger turn means the fit went wrong (a hand, a
+    partial view), not that the placed boxes are 10 deg off."""
+    return bool(np.degrees(np.arccos(np.clip(fit.axis[1], -1, 1))) <= 10.0)
 
 
 def _snap_symmetric(tracker: Tracker, fit: _AxisFit | None) -> np.ndarray | None:
@@ -254,7 +259,7 @@ def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     if fitted is not None:
         snap = snap_upright(np.eye(4), *fitted)
         snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): along the handle it stays where it is
-    if config.handle_plane_centring and fit is not None and np.degrees(np.arccos(np.clip(fit.axis[1], -1, 1))) <= 10.0:
+    if config.handle_plane_centring and fit is not None and _near_box_y(fit):
         # an ill-conditioned fit leaves the axis's tilt doubtful, not where it crosses the box's middle: the plane
         # through it and the handle holds the box centre (measured on v5 mug seeds 0 and 1, conditioning 0.17 and
         # 0.20: see handle.py)
