@@ -42,8 +42,10 @@
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis), and that centre moved square across onto the plane of the
    axis and the handle (handle.py); a box-like body (a camera) onto its faces (faces.py); a
-   hinged one (a laptop) its y onto its base's faces and its x square to its lid's (faces.hinge_rotation), and each
-   frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py);
+   hinged one (a laptop) its y onto its base's faces and its x square to its lid's (faces.hinge_rotation), each
+   frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py), and
+   turned onto its own base's and lid's faces, the median over +-6 frames (tilt.py: the frames that see the base
+   from above and those that see it from below share no face, and kept their manual frames' rotations);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, a spin about the axis that the geometry leaves free checked against the colours and
@@ -551,6 +553,12 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = _centred_on_hinge(tracker, ids, poses, snap, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
+        if hinged and config.frame_hinge_tilt:
+            # ... and each frame's own rotation from its base's and lid's faces: the snap turns all frames alike, but
+            # the frames that see the base from above and those that see it from below share no face, and their
+            # rotations differ by what their manual frames brought (tilt.py)
+            tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=True), config.tilt_window, config.min_tilt_frames)
+            poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
 
     # 6: the document
     kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]
