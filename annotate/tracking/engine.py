@@ -34,14 +34,14 @@
    clearly rises (slide.py), unless that takes it off the path of its neighbours (then it is
    flagged: slide.against_the_motion);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
-   placed boxes (their errors average out); for symmetry y, the box is snapped upright on the
+   placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not set it); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
-   the box centre (which the handle keeps off the axis), and that centre moved square across onto the plane of the
-   axis and the handle (handle.py); a box-like body (a camera) onto its faces (faces.py); a
+   the box centre (which the handle keeps off the axis), that centre moved square across onto the plane of the
+   axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py); a box-like body (a camera) onto its faces (faces.py); a
    hinged one (a laptop) its y onto its base's faces and its x square to its lid's (faces.hinge_rotation), each
    frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py), and
    turned onto its own base's and lid's faces, the median over +-6 frames (tilt.py: the frames that see the base
@@ -516,7 +516,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}
-    correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric)
+    correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric, {m for m in anchors if m in spins})
     poses = {f: p @ correction for f, p in poses.items()}
     if symmetric and config.symmetry_snap:
         model = build_model(tracker, poses, config.max_global_frames, anchors)
@@ -539,6 +539,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;
         # cameras pass the roundness test too, so the faces are asked first)
         snap = _snap_faces(tracker, model) if config.face_snap else None
+        faced = snap is not None
         hinged = False
         if snap is None and config.hinge_snap and not nearly_round:
             snap = _snap_hinge(tracker, model)
@@ -553,6 +554,11 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = _centred_on_hinge(tracker, ids, poses, snap, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
+        if nearly_round and not hinged and not faced and config.frame_tilt:
+            # ... and each frame's own tilt from its foot and inner bottom, as a bowl's (tilt.py): the snap turns all
+            # frames alike, and is refused where the body's fit is ill-conditioned (all v5 mugs with 3 manual frames)
+            tilts = windowed_tilts(ids, frame_tilts(tracker, poses), config.tilt_window, config.min_tilt_frames)
+            poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
         if hinged and config.frame_hinge_tilt:
             # ... and each frame's own rotation from its base's and lid's faces: the snap turns all frames alike, but
             # the frames that see the base from above and those that see it from below share no face, and their
