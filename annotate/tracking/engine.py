@@ -563,7 +563,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # ... and each frame's own rotation from its base's and lid's faces: the snap turns all frames alike, but
             # the frames that see the base from above and those that see it from below share no face, and their
             # rotations differ by what their manual frames brought (tilt.py)
-            tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=True), config.tilt_window, config.min_tilt_frames)
+            tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=True, every=config.hinge_tilt_every), config.tilt_window, config.min_tilt_frames)
             poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
 
     # 6: the document
