@@ -34,16 +34,17 @@
    clearly rises (slide.py), unless that takes it off the path of its neighbours (then it is
    flagged: slide.against_the_motion);
 5. common frame: the consistent poses are moved by the one correction that best fits all the
-   placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not set it); for symmetry y, the box is snapped upright on the
+   placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not
+   set it); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis), that centre moved square across onto the plane of the
-   axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py); a box-like body (a camera) onto its faces (faces.py); a
-   hinged one (a laptop) its y onto its base's faces and its x square to its lid's (faces.hinge_rotation), each
-   frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py), and
+   axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py);
+   a box-like body (a camera) onto its faces (faces.py); a hinged one (a laptop) its y onto its base's faces and
+   its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py), and
    turned onto its own base's and lid's faces, the median over +-6 frames (tilt.py: the frames that see the base
    from above and those that see it from below share no face, and kept their manual frames' rotations);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
