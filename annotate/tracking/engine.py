@@ -44,9 +44,10 @@
    the box centre (which the handle keeps off the axis), that centre moved square across onto the plane of the
    axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py);
    a box-like body (a camera) onto its faces (faces.py); a hinged one (a laptop) its y onto its base's faces and
-   its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the ends that the frames about it see (centring.py), and
-   turned onto its own base's and lid's faces, the median over +-6 frames (tilt.py: the frames that see the base
-   from above and those that see it from below share no face, and kept their manual frames' rotations);
+   its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the
+   ends that the frames about it see (centring.py), and turned onto its own base's and lid's faces, the median
+   over +-6 frames (tilt.py: the frames that see the base from above and those that see it from below share no
+   face, and kept their manual frames' rotations);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, a spin about the axis that the geometry leaves free checked against the colours and
@@ -103,7 +104,7 @@ from .slide import against_the_motion, shifted, slide_corrections
 from .spin_window import windowed_spins
 from .stretch_spin import stretch_spins
 from .symmetry import fit_symmetry_axis, snap_upright
-from .tilt import frame_tilts, untilted, windowed_tilts
+from .tilt import each_frame_untilted
 from .tracker import FrameResult, Tracker
 from .workers import ordered_map
 
@@ -533,8 +534,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = {f: p @ snap for f, p in poses.items()}
         if flat is not None and config.frame_tilt:
             # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py)
-            tilts = windowed_tilts(ids, frame_tilts(tracker, poses), config.tilt_window, config.min_tilt_frames)
-            poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
+            poses = each_frame_untilted(tracker, ids, poses)
     elif not symmetric and (config.face_snap or config.hinge_snap or (nearly_round and config.body_axis_snap)):
         model = build_model(tracker, poses, config.max_global_frames, anchors)
         # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;
@@ -558,14 +558,12 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if nearly_round and not hinged and not faced and config.frame_tilt:
             # ... and each frame's own tilt from its foot and inner bottom, as a bowl's (tilt.py): the snap turns all
             # frames alike, and is refused where the body's fit is ill-conditioned (all v5 mugs with 3 manual frames)
-            tilts = windowed_tilts(ids, frame_tilts(tracker, poses), config.tilt_window, config.min_tilt_frames)
-            poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
+            poses = each_frame_untilted(tracker, ids, poses)
         if hinged and config.frame_hinge_tilt:
             # ... and each frame's own rotation from its base's and lid's faces: the snap turns all frames alike, but
             # the frames that see the base from above and those that see it from below share no face, and their
             # rotations differ by what their manual frames brought (tilt.py)
-            tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=True, every=config.hinge_tilt_every), config.tilt_window, config.min_tilt_frames)
-            poses = {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
+            poses = each_frame_untilted(tracker, ids, poses, hinged=True, every=config.hinge_tilt_every)
 
     # 6: the document
     kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]

@@ -137,6 +137,15 @@ def windowed_tilts(ids: list[str], tilts: dict[str, np.ndarray], half_window: in
     return out
 
 
+def each_frame_untilted(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1) -> dict[str, np.ndarray]:
+    """``poses`` (frame id -> 4x4, frames ``ids`` in order) each turned by the median of the tilts measured within
+    ``tilt_window`` frames of it (:func:`frame_tilts`, :func:`windowed_tilts`, :func:`untilted`); a frame with fewer
+    than ``min_tilt_frames`` measured near it keeps its pose."""
+    config = tracker.config
+    tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=hinged, every=every), config.tilt_window, config.min_tilt_frames)
+    return {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
+
+
 def untilted(pose: np.ndarray, tilt: np.ndarray) -> np.ndarray:
     """``pose`` (4x4) with its object frame turned by the inverse of ``tilt`` (3,; rad) about the box centre."""
     out = np.array(pose, dtype=np.float64, copy=True)
