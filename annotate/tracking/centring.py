@@ -34,6 +34,15 @@ instead of the widest, 44.7-46.3 mm; moving a frame only where its offset exceed
 Later (2026-11-27, after the interpolation): spans also no more than ``tolerance`` wider than the widest ones (laptop
 seed 1's frames 81-88 span 310-318 mm of a 306.5 mm laptop, the fingers at one end), the 16 runs' centres summed
 44.51 -> 44.61 mm, the same checks failing.
+
+The window (``TrackingConfig.centring_window``) is +-1 frame, not +-2 (2026-11-27): the chains' offset along x changes
+within a few frames where a stretch slides, and a wider median lags behind it. Post hoc on the poses before this
+step (the issue's setting, seeds 0-3), the median |x error| after it: +-2 frames 1.34, 2.91, 1.47, 2.25 mm; +-1
+1.25, 2.51, 1.19, 2.04; each frame's own middle 1.30, 1.90, 1.30, 1.90; +-4 and +-10 worse (seed 1 3.18, 5.08).
+End to end (the 16 laptop runs, four settings), box-centre medians summed 44.51 -> 43.91 mm at +-1 (11 runs lower,
+4 higher by at most 0.10 mm, 1 the same; the issue's setting 2.13, 4.36, 1.84, 2.55 -> 2.09, 4.24, 1.69, 2.39 mm) and
+43.15 mm with each frame's own middle, which however takes 3 manual frames' seed 0 to 3.01 mm, a goal check more
+failing. Rotations and F-scores do not move.
 """
 
 from __future__ import annotations

@@ -68,7 +68,7 @@ class TrackingConfig:
     frame_hinge_tilt: bool = True  #: ... and then every frame turned onto its own base's and lid's normals, the median over tilt_window (tilt.py)
     hinge_tilt_every: int = 2  #: ... measured on every this-many-th frame (a laptop frame's normals cost ~30 ms of CPU; the median keeps 6-7)
     centring_tolerance: float = 0.005  #: ... by the frames whose span along it reaches within this (m) of the widest spans
-    centring_window: int = 2  #: ... within this many frames either side (their median middle)
+    centring_window: int = 1  #: ... within this many frames either side (their median middle)
     flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
     flat_cone_deg: float = 5.0  #: ... those within this of +-y
     min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals
