@@ -36,7 +36,8 @@ seed 1's frames 81-88 span 310-318 mm of a 306.5 mm laptop, the fingers at one e
 44.51 -> 44.61 mm, the same checks failing.
 
 The window (``TrackingConfig.centring_window``) is +-1 frame, not +-2 (2026-11-27): the chains' offset along x changes
-within a few frames where a stretch slides, and a wider median lags behind it. Post hoc on the poses before this
+by several mm from one frame to the next where a stretch slides (laptop seed 1's frames 80-83: +10.9, +3.5, -0.3,
+-3.9 mm), and a median over +-2 frames mixes more of the neighbours' offsets into a frame's. Post hoc on the poses before this
 step (the issue's setting, seeds 0-3), the median |x error| after it: +-2 frames 1.34, 2.91, 1.47, 2.25 mm; +-1
 1.25, 2.51, 1.19, 2.04; each frame's own middle 1.30, 1.90, 1.30, 1.90; +-4 and +-10 worse (seed 1 3.18, 5.08).
 End to end (the 16 laptop runs, four settings), box-centre medians summed 44.51 -> 43.91 mm at +-1 (11 runs lower,
