@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_tracking_render import object_offset, posed_off
 
-from annotate.tracking.centring import Span, centre_offsets, centred, extent_along
+from annotate.tracking.centring import Span, centre_offsets, centred, end_faces, extent_along
 from annotate.tracking.engine import _centred_on_hinge
 from annotate.tracking.refine import build_model, min_hits_for
 
@@ -117,3 +117,44 @@ def test_the_engine_centres_along_the_snapped_hinge_before_the_snap(rendered_lap
     left = np.array([(np.linalg.inv(truth[f]) @ out[f] @ snap)[:3, 3] for f in ids])
     # measured: 1.0-1.1 mm along x (as above), 0 along y and z; along the unsnapped x it would be 19 mm off
     assert np.abs(left[:, 0]).max() < 0.0015 and np.abs(left[:, 1:]).max() < 1e-4, left
+
+
+def test_a_frame_that_sees_an_end_face_takes_the_middle_that_face_gives():
+    # a 0.300 m object; frames 0-2 and 4-6 saw both ends (spans 2 mm short of the width: their outlines), about 2 mm
+    # from the box centre. Frame 3 sees its high end's face at +0.156 m: the object's centre lies 6 mm along the axis
+    # there, whatever the frames about it say
+    full = [Span(0.298, 0.002, -0.147, 0.151), Span(0.299, 0.0025, -0.147, 0.152), Span(0.297, 0.0015, -0.147, 0.150)]
+    faced = Span(0.300, 0.002, -0.148, 0.152, face_high=0.156)
+    offsets = centre_offsets(full + [faced] + full, 0.005, 1)
+    # half the median width of the frames that saw both ends (0.298 m) in from the face
+    assert offsets[3] == pytest.approx(0.156 - 0.149, abs=1e-12)
+    # its neighbours keep the median middle of the frames about them (frame 3's own span counts there)
+    assert np.allclose(offsets[[2, 4]], [0.002, 0.002], atol=1e-12)
+    # both faces seen: the mean of the two middles
+    both = Span(0.300, 0.002, -0.148, 0.152, face_low=-0.145, face_high=0.156)
+    assert centre_offsets(full + [both] + full, 0.005, 1)[3] == pytest.approx(((-0.145 + 0.149) + (0.156 - 0.149)) / 2, abs=1e-12)
+    # a face seen at a slid frame's uncut end decides over the cut rule's middle (the same end, measured on its face)
+    slid = Span(0.260, -0.025, -0.155, 0.105, cut_low=True, face_high=0.1065)
+    assert centre_offsets(full + [slid] + full, 0.005, 1)[3] == pytest.approx(0.1065 - 0.149, abs=1e-12)
+
+
+@pytest.mark.slow
+def test_an_end_face_seen_gives_the_end_where_the_span_falls_short(rendered_laptop):
+    _, mesh, truth = rendered_laptop
+    # every box 12 mm along the hinge; the rendered frames see the laptop's high side (its +x end face), not its low one
+    tracker, ids, poses = posed_off(rendered_laptop, object_offset(translation_m=(0.012, 0.0, 0.0)))
+    model = build_model(tracker, poses, len(ids), [ids[0]])
+    target = model.target(min_hits_for(model, tracker.config))
+    x = np.array([1.0, 0.0, 0.0])
+    spans = [extent_along(tracker, f, poses[f], target, x) for f in ids]
+    width = mesh.extents[0]
+    # the true ends in the boxes' frame: the object's centre lies 12 mm below the box centre
+    low, high = -width / 2 - 0.012, width / 2 - 0.012
+    face = np.array([s.face_high for s in spans])
+    assert all(np.isnan(s.face_low) for s in spans)
+    # measured: the faces within 0.02 mm of the end; the spans' high ends 0.10-0.16 mm beyond it, their low ends (the
+    # outline) 1.5-2.5 mm short
+    assert np.abs(face - high).max() < 1e-4, (face - high) * 1000
+    assert min(s.low - low for s in spans) > 0.001
+    # the end face from its frames' own points, with or without the end under a frame's span end: the same
+    assert end_faces(tracker, ids[0], poses[ids[0]], x, spans[0].low, spans[0].high)[1] == spans[0].face_high

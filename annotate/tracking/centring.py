@@ -55,6 +55,28 @@ from the offset of the frames about it, the frame takes that middle (2026-11-27)
 centre error 4.44 -> 3.52 mm; seed 1's frames 36-41 came to 0.4-12 mm along x and 50-52 to 0.6, 3.4 and 18. Medians:
 the issue's setting seed 1 4.24 -> 4.08 mm (its F-score 0.863 -> 0.880), with 3 manual frames 3.68 -> 3.51 mm; no
 run's median higher, rotations unchanged.
+
+A frame that sees one of the object's end faces (square to the axis: a laptop's sides) measures that end on the face
+itself (:func:`end_faces`), to a fraction of a millimetre where the spans' ends are off by 2-5 mm (the outline falls
+short of the end, a face's noise runs beyond it), and takes the middle it gives, half the width of the frames that saw
+both ends in (2026-11-27). Laptop seeds 0-3 see a face in 36-52 of their 100 frames. Post hoc on laptop seed 1's poses
+before this step, the faces foretold their frames' offsets to within 0.1-1.4 mm (frames 84-96, 4-8 mm off along x,
+unflagged: the spans' middles had taken the outline's shortfall for the offset). Measured over the 16 laptop runs (four
+settings), box-centre medians:
+
+| setting | seeds | before | after |
+|---|---|---|---|
+| 4 manual frames off by up to 3 deg / 5 mm / 8 % | 0-3 | 2.09, 4.08, 1.69, 2.39 | 1.79, 3.52, 1.46, 1.41 |
+| 3 manual frames, 3 deg | 0-3 | 2.75, 3.51, 2.94, 2.94 | 2.05, 3.35, 2.86, 2.73 |
+| 3 manual frames, 5 deg | 0-3 | 2.70, 3.49, 2.04, 4.12 | 2.05, 3.55, 1.80, 3.62 |
+| 4 manual frames, unseen | 4-7 | 2.06, 1.25, 3.60, 1.86 | 1.88, 0.99, 2.77, 1.86 |
+
+Summed 43.51 -> 37.69 mm (15 runs lower, one 0.06 mm higher); centres over 3 mm 5 -> 4 (unseen seed 6 passes); the
+issue's setting seed 1's F@5mm 0.880 -> 0.899. Rotations unchanged. What is left: the width of the frames that saw both
+ends is their spans' (1.5-2.4 mm short of the laptop's on seeds 0-3: the outline's shortfall less the face's noise), so a
+face's frame lies half that off, about 1 mm; the spans' ends at full resolution instead of voxels were no nearer (a
+rendered laptop: 352.1 mm against 353.4 of a 355.4 mm laptop). A frame measured costs ~6 ms of CPU more (its crop at
+full resolution, the normals of the points near its ends).
 """
 
 from __future__ import annotations
@@ -62,6 +84,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+import open3d as o3d
 
 from evaluate.geometry import untransform
 
@@ -81,11 +104,21 @@ CUT_VOXELS = 1.5
 #: a frame whose one end is the crop's takes the middle its other end gives where that lies this far (m) from the
 #: offset of the frames about it (a slide; nearer, the frames about it are the better measure)
 MIN_SLIDE_M = 0.01
+#: an end face: a frame's points (full resolution) whose normals lie within this of the axis, facing out
+FACE_CONE_DEG = 30.0
+#: ... searched among the points within this (m) inside the frame's span ends
+FACE_BAND_M = 0.02
+#: ... and counted only with at least this many points (a laptop's end seen edge-on gives a handful)
+MIN_FACE_POINTS = 30
+#: neighbours for a point's normal (the tracker's crops are voxel-downsampled to ~6 mm on a laptop, coarser than its
+#: 12-20 mm thick ends: the faces' normals come from the frame's points at the image's resolution)
+FACE_NORMAL_NEIGHBOURS = 16
 
 
 class Span(NamedTuple):
-    """A frame's points along the axis (m, object frame, from the box centre): their span, its middle and ends, and
-    whether each end is where the crop stops (the object runs on past it) rather than where the object ends."""
+    """A frame's points along the axis (m, object frame, from the box centre): their span, its middle and ends,
+    whether each end is where the crop stops (the object runs on past it) rather than where the object ends, and where
+    the end faces it sees lie."""
 
     width: float
     middle: float
@@ -93,6 +126,8 @@ class Span(NamedTuple):
     high: float = float("nan")
     cut_low: bool = False
     cut_high: bool = False
+    face_low: float = float("nan")  #: where the low end's face lies, seen (m); nan where not seen (end_faces)
+    face_high: float = float("nan")  #: ... the high end's
 
 
 def extent_along(tracker: Tracker, frame_id: str, pose: np.ndarray, target: ModelTarget, direction: np.ndarray) -> Span | None:
@@ -115,7 +150,47 @@ def extent_along(tracker: Tracker, frame_id: str, pose: np.ndarray, target: Mode
     reach = float(np.abs(direction) @ (tracker.box / 2 + tracker.config.crop_margin))
     edge = reach - CUT_VOXELS * tracker.config.voxel_size
     first, last = np.percentile(along, END_PERCENTILES)
-    return Span(float(high - low), float(0.5 * (high + low)), float(low), float(high), bool(first <= -edge), bool(last >= edge))
+    face_low, face_high = end_faces(tracker, frame_id, pose, direction, low, high)
+    return Span(float(high - low), float(0.5 * (high + low)), float(low), float(high), bool(first <= -edge), bool(last >= edge),
+                face_low, face_high)
+
+
+def end_faces(tracker: Tracker, frame_id: str, pose: np.ndarray, direction: np.ndarray, low: float, high: float) -> tuple[float, float]:
+    """Where the object's two end faces square to ``direction`` (unit, object frame) lie along it (m, from the box
+    centre), measured on the frame's own points (full resolution) within ``FACE_BAND_M`` of its span's ends ``low``
+    and ``high``: the median of those whose normals face out along the axis; nan for an end whose face the frame does
+    not see (``MIN_FACE_POINTS``).
+
+    A face seen gives its end to a fraction of a millimetre: its points lie on it. An end seen only as the outline
+    of the faces beside it falls short (the last pixel before the background lies up to a pixel-step inside it, and
+    depth jumps lose pixels), and a face's own end percentile lies beyond it (its noise). Measured on laptop seed 1
+    at the true poses: the span's ends 3-5 mm short and 2-3 mm beyond; the face medians within 0.2 mm.
+
+    The points are not filtered by the model, as the spans are: a model of all frames keeps little of the end faces
+    (seen by few frames, at offsets that differ by as much as they slid): laptop seed 1's frame 85, 85 of its 1020
+    face points lay on it, and frames 91-96 had too few left. A rotation error of the pose about the box centre moves
+    the median by the angle times the face's distance from the centre across the axis (1 deg: 1.5 mm on a rendered
+    laptop); a fit of the face's tilt, read at the box centre, took that out there, but over the 16 laptop runs its
+    centres summed 38.16 mm against the median's 37.69, 5 over 3 mm against 4.
+    """
+    points, _ = tracker.store.crop(frame_id, pose, tracker.box, tracker.config.crop_margin, None)
+    if len(points) < MIN_FACE_POINTS:
+        return float("nan"), float("nan")
+    along = untransform(pose, points) @ direction
+    near = (along <= low + FACE_BAND_M) | (along >= high - FACE_BAND_M)
+    if np.count_nonzero(near) < MIN_FACE_POINTS:
+        return float("nan"), float("nan")
+    points, along = points[near], along[near]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(FACE_NORMAL_NEIGHBOURS))
+    cloud.orient_normals_towards_camera_location(np.zeros(3))  # camera frame: the surfaces seen face the camera
+    outward = np.asarray(cloud.normals) @ (pose[:3, :3] @ direction)
+    cone = np.cos(np.deg2rad(FACE_CONE_DEG))
+    faces = []
+    for sign, end in ((-1.0, low), (1.0, high)):
+        face = (sign * outward > cone) & (sign * (along - end) >= -FACE_BAND_M)
+        faces.append(float(np.median(along[face])) if np.count_nonzero(face) >= MIN_FACE_POINTS else float("nan"))
+    return faces[0], faces[1]
 
 
 def centre_offsets(spans: list[Span | tuple[float, float] | None], tolerance: float, window: int) -> np.ndarray:
@@ -125,7 +200,9 @@ def centre_offsets(spans: list[Span | tuple[float, float] | None], tolerance: fl
     between the nearest frames that have one on either side and held beyond the first and last (measured: laptop
     seed 3's frames 82-85, 15 mm off along the hinge where their neighbours were corrected to 3-5 mm, came to 5 mm).
     A frame whose :class:`Span` has one end cut by the crop takes the middle its other end gives, where that lies
-    more than ``MIN_SLIDE_M`` from this offset (a slid box). 0 everywhere where no frame has a span."""
+    more than ``MIN_SLIDE_M`` from this offset (a slid box). A frame that sees an end face takes the middle that face
+    gives, half the width of the frames that saw both ends in (the mean of the two where it sees both). 0 everywhere
+    where no frame has a span."""
     widths = np.array([s[0] if s is not None else np.nan for s in spans])
     middles = np.array([s[1] if s is not None else np.nan for s in spans])
     if not np.any(np.isfinite(widths)):
@@ -144,7 +221,13 @@ def centre_offsets(spans: list[Span | tuple[float, float] | None], tolerance: fl
     # in, gives its middle (the frames about it slid too, or saw both ends and do not share its offset)
     width = float(np.nanmedian(np.where(np.isfinite(seen), widths, np.nan)))
     for i, span in enumerate(spans):
-        if not isinstance(span, Span) or np.isfinite(seen[i]) or span.cut_low == span.cut_high:
+        if not isinstance(span, Span):
+            continue
+        faced = [f + s * width / 2 for f, s in ((span.face_low, 1.0), (span.face_high, -1.0)) if np.isfinite(f)]
+        if faced:  # an end face seen: the frame's own measure, to a fraction of a millimetre at its end
+            offsets[i] = float(np.mean(faced))
+            continue
+        if np.isfinite(seen[i]) or span.cut_low == span.cut_high:
             continue
         own = span.high - width / 2 if span.cut_low else span.low + width / 2
         if abs(own - offsets[i]) > MIN_SLIDE_M:
