@@ -47,7 +47,8 @@
    its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the
    ends that the frames about it see (centring.py), and turned onto its own base's and lid's faces, the median
    over +-6 frames (tilt.py: the frames that see the base from above and those that see it from below share no
-   face, and kept their manual frames' rotations);
+   face, and kept their manual frames' rotations), and then moved along its y to halfway between the base's underside
+   and the lid's top, from the faces it sees (height.py: for the same reason, they kept their manual frames' y);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, a spin about the axis that the geometry leaves free checked against the colours and
@@ -84,6 +85,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from evaluate.geometry import untransform
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
@@ -98,6 +100,7 @@ from .centring import centre_offsets, centred, extent_along
 from .colour_spin import ColourSpinCheck, spin_matrix
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
 from .handle import onto_handle_plane
+from .height import centred_heights
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model, undo_smoothing_bends
 from .slide import against_the_motion, shifted, slide_corrections
@@ -308,6 +311,19 @@ def _centred_on_hinge(tracker: Tracker, ids: list[str], poses: dict[str, np.ndar
     spans = ordered_map(lambda f: extent_along(tracker, f, poses[f], target, hinge), ids, config.worker_count())
     offsets = centre_offsets(spans, config.centring_tolerance, config.centring_window)
     return {f: centred(poses[f], offset, hinge) for f, offset in zip(ids, offsets)}
+
+
+def _lid_side(tracker: Tracker, model: ObjectModel, snap: np.ndarray) -> float:
+    """The sign of the snapped object's z (+1 or -1) where a hinged body's lid rises: the side of the model's points
+    above the box centre (the model leaves out the hand); 0 where too few lie there."""
+    points, _ = model.points(min_hits_for(model, tracker.config))
+    if len(points) == 0:
+        return 0.0
+    local = untransform(snap, points)
+    upper = local[:, 1] > 0
+    if np.count_nonzero(upper) < 30:
+        return 0.0
+    return float(np.sign(np.median(local[upper, 2])))
 
 
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
@@ -564,6 +580,11 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # the frames that see the base from above and those that see it from below share no face, and their
             # rotations differ by what their manual frames brought (tilt.py)
             poses = each_frame_untilted(tracker, ids, poses, hinged=True, every=config.hinge_tilt_every)
+        side = _lid_side(tracker, model, snap) if hinged and config.hinge_height_centring else 0.0
+        if side:
+            # ... and its centre along y from the faces each frame sees: the frames above and below share none, and
+            # kept the y their manual frames gave them (height.py)
+            poses = centred_heights(tracker, ids, poses, side, every=config.hinge_tilt_every)
 
     # 6: the document
     kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]
