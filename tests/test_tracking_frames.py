@@ -62,6 +62,10 @@ def test_crop_keeps_the_wall_inside_the_box_and_repeats_exactly():
     # voxel-downsampled: one point per 2 cm voxel of the wall (the box spans 10 x 5 voxels at most)
     coarse, coarse_colors = store.crop("a", _box_pose(0.05), extents, margin=0.0, voxel=0.02)
     assert 40 <= len(coarse) <= 66 and coarse_colors.shape == coarse.shape
+    # a one-off crop (keep=False): the same points, and the kept one stays kept
+    kept_keys = list(store._crops)
+    assert np.array_equal(store.crop("a", _box_pose(-0.05), extents, margin=0.0, keep=False)[0], other)
+    assert list(store._crops) == kept_keys
     assert sequence.reads == 1  # the frame itself is read once
 
 

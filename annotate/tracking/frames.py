@@ -81,13 +81,16 @@ class FrameStore:
             self._frames[frame_id] = out
         return out
 
-    def crop(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def crop(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None = None,
+             keep: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Points (N, 3) m camera frame and colours (N, 3) 0..1 of a frame inside the box at ``pose``
         (4x4 object to camera, full sides ``extents``) grown by ``margin`` (m); voxel-downsampled to ``voxel``.
 
-        The arrays are the caller's own (a repeated crop returns copies of the kept one).
+        The arrays are the caller's own (a repeated crop returns copies of the kept one). ``keep=False``: the crop
+        is neither looked up nor kept (a one-off crop at full resolution, ten times a voxel crop's size, would push
+        the registrations' crops out of the cache).
         """
-        if self.crop_cache <= 0:
+        if self.crop_cache <= 0 or not keep:
             points, colors = self._crop(frame_id, pose, extents, margin, voxel)
             return points, (colors if colors is not None else np.zeros_like(points))
         key = _crop_key(frame_id, pose, extents, margin, voxel)

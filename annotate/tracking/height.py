@@ -173,7 +173,7 @@ def measure_levels(tracker: Tracker, frame_id: str, pose: np.ndarray, lid_side: 
     """:func:`frame_levels` of the frame's points in its box (full resolution) at ``pose`` (4x4 object to camera, the
     snapped object frame); normals only of the points near the faces (they cost ~10 ms per 10,000 points); None
     without enough points."""
-    points, _ = tracker.store.crop(frame_id, pose, tracker.box, tracker.config.crop_margin, None)
+    points, _ = tracker.store.crop(frame_id, pose, tracker.box, tracker.config.crop_margin, None, keep=False)
     if len(points) < MIN_FACE_POINTS:
         return None
     local = untransform(pose, points)
