@@ -32,7 +32,8 @@ LID_EDGE = _grid(XS, np.linspace(TOP - 0.002, TOP, 5), [-0.125], (0, 0.95, -0.3)
 LID_INNER = _grid(XS, np.linspace(-0.09, 0.10, 39), [-0.11], (0, 0.3, 0.95))
 # the +x side: the base's (the whole depth) and the lid's (behind the hinge, at -z)
 BASE_SIDE = _grid([0.15], np.linspace(BOTTOM, BOTTOM + THICKNESS, 17), ZS, (1, 0, 0))
-LID_SIDE = _grid([0.15], np.linspace(BOTTOM + THICKNESS, TOP, 60), np.linspace(-0.125, -0.105, 5), (1, 0, 0))
+# (from the hinge, 20 mm inside the base's back edge, to the lid's back)
+LID_SIDE = _grid([0.15], np.linspace(BOTTOM + THICKNESS, TOP, 60), np.linspace(-0.125, -0.08, 10), (1, 0, 0))
 
 
 def test_a_frame_measures_each_face_it_sees_on_the_faces_own_points():
@@ -48,8 +49,10 @@ def test_a_frame_measures_each_face_it_sees_on_the_faces_own_points():
     assert above.keyboard == pytest.approx(BOTTOM + THICKNESS, abs=1e-12)
     assert above.top == pytest.approx(TOP - 0.001, abs=1e-12)
     assert np.isnan(above.bottom) and np.isnan(above.thickness)
-    # the lid taken to rise at +z: the half "away" from it is the lid's, whose side reaches far above the base
-    assert np.isnan(frame_levels(*_frame(UNDERSIDE, LID_SIDE), lid_side=1.0).thickness)
+    # the lid taken to rise at +z: the half "away" from it is the lid's, whose side (up to the box centre) is taken
+    # for the base's: 120 mm, no thickness of a base (height_offsets refuses it)
+    wrong = frame_levels(*_frame(UNDERSIDE, BASE_SIDE, LID_SIDE), lid_side=1.0)
+    assert wrong.thickness == pytest.approx(0.120, abs=0.005)
     # too few points: nothing measured
     assert all(np.isnan(v) for v in frame_levels(np.zeros((5, 3)), np.zeros((5, 3)), -1.0))
 
@@ -72,8 +75,8 @@ def test_offsets_put_every_frame_halfway_between_the_underside_and_the_lids_top(
     below = Levels(BOTTOM, nan, nan, THICKNESS)
     above = Levels(nan, BOTTOM + THICKNESS + 0.004, TOP - 0.001 + 0.004, nan)
     offsets = height_offsets([below, below, below, None, Levels(nan, nan, nan, nan), above, above, above])
-    # the centre halfway up the measured height: the frames below at its half (1 mm, half the lid edge's shortfall,
-    # low), the frames above 4 mm higher; frames 3-4 interpolated between
+    # the centre halfway up the measured height: the frames below at its half (0.5 mm low, half the lid edge's 1 mm
+    # shortfall), the frames above 4 mm higher; frames 3-4 interpolated between
     expected = np.array([0, 0, 0, 0.004 / 3, 0.008 / 3, 0.004, 0.004, 0.004]) + BOTTOM + height / 2
     assert np.allclose(offsets, expected, atol=1e-12)
     # the keyboard alone gives the same centre as the lid's top (the thickness below it)
@@ -83,6 +86,12 @@ def test_offsets_put_every_frame_halfway_between_the_underside_and_the_lids_top(
     palm = Levels(BOTTOM - 0.020, nan, nan, nan)
     offsets = height_offsets([below, below, palm, below, above, above])
     assert np.allclose(offsets, np.array([0, 0, 0, 0, 0.004, 0.004]) + BOTTOM + height / 2, atol=1e-12)
+    # a thickness of a quarter of the height or more (the lid's side taken for the base's), or a height far from the placed
+    # box's (15 % at most): no laptop measured, nothing moved
+    lid_taken = Levels(BOTTOM, nan, nan, 0.120)
+    assert np.array_equal(height_offsets([lid_taken, above]), [0.0, 0.0])
+    assert np.allclose(height_offsets([below, above], box_height=0.25), [expected[0], expected[-1]], atol=1e-12)
+    assert np.array_equal(height_offsets([below, above], box_height=0.20), [0.0, 0.0])
     # no thickness, or no frame seeing both the keyboard and the lid's top: no height, nothing moved
     assert np.array_equal(height_offsets([Levels(BOTTOM, nan, nan, nan), above]), [0.0, 0.0])
     assert np.array_equal(height_offsets([below, Levels(nan, nan, TOP, nan)]), [0.0, 0.0])
@@ -122,3 +131,29 @@ def test_without_a_thickness_measured_no_frame_is_moved(rendered_laptop):
     # so the frames above cannot be tied to any height: all left where they are
     out = centred_heights(tracker, ids, poses, lid, every=2)
     assert all(np.array_equal(out[f], poses[f]) for f in ids)
+
+
+def test_each_frame_is_moved_along_its_own_y_by_its_offset(monkeypatch):
+    from types import SimpleNamespace
+
+    import annotate.tracking.height as height
+
+    nan = float("nan")
+    ids = [f"{k:03d}" for k in range(6)]
+    rotation = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    poses = {f: np.eye(4) for f in ids}
+    for k, f in enumerate(ids):
+        poses[f][:3, :3] = rotation
+        poses[f][:3, 3] = [0.01 * k, -0.02, 0.6]
+    # frames 0-2 seen from below, centred; frames 3-5 from above, the object 4 mm higher in their boxes
+    below = Levels(BOTTOM, nan, nan, THICKNESS)
+    above = Levels(nan, BOTTOM + THICKNESS + 0.004, TOP - 0.001 + 0.004, nan)
+    seen = {f: below if k < 3 else above for k, f in enumerate(ids)}
+    monkeypatch.setattr(height, "measure_levels", lambda tracker, f, pose, side: seen[f])
+    tracker = SimpleNamespace(store=SimpleNamespace(errors={}), config=SimpleNamespace(worker_count=lambda: 1), box=np.array([0.30, 0.24, 0.25]))
+    out = height.centred_heights(tracker, ids, poses, -1.0, every=1)
+    middle = BOTTOM + ((TOP - 0.001) - BOTTOM) / 2  # the centre the faces give in a centred box: 0.5 mm low
+    for k, f in enumerate(ids):
+        moved = np.linalg.inv(poses[f]) @ out[f]  # the move in the box's own frame: along its y alone
+        assert np.allclose(moved[:3, :3], np.eye(3), atol=1e-12)
+        assert np.allclose(moved[:3, 3], [0.0, middle + (0.004 if k >= 3 else 0.0), 0.0], atol=1e-12)

@@ -315,7 +315,8 @@ def _centred_on_hinge(tracker: Tracker, ids: list[str], poses: dict[str, np.ndar
 
 def _lid_side(tracker: Tracker, model: ObjectModel, snap: np.ndarray) -> float:
     """The sign of the snapped object's z (+1 or -1) where a hinged body's lid rises: the side of the model's points
-    above the box centre (the model leaves out the hand); 0 where too few lie there."""
+    above the box centre (the model leaves out the hand); 0 where too few lie there, or their median lies within a
+    quarter of the box's half-depth of its middle (no side to tell: the base's half would be misjudged)."""
     points, _ = model.points(min_hits_for(model, tracker.config))
     if len(points) == 0:
         return 0.0
@@ -323,7 +324,8 @@ def _lid_side(tracker: Tracker, model: ObjectModel, snap: np.ndarray) -> float:
     upper = local[:, 1] > 0
     if np.count_nonzero(upper) < 30:
         return 0.0
-    return float(np.sign(np.median(local[upper, 2])))
+    middle = float(np.median(local[upper, 2]))
+    return float(np.sign(middle)) if abs(middle) >= 0.25 * float(tracker.box[2]) / 2 else 0.0
 
 
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:

@@ -11,7 +11,7 @@ The box is tight, so its centre along y is halfway between the base's underside 
 along y that a frame sees measures where that centre lies, given the object's height H and its base's thickness t:
 the underside (normals onto -y, at the low end) puts it H/2 above; the lid's top edge (normals onto +y, at the high
 end) H/2 below; the keyboard (normals within a few degrees of +y, below the box centre) t below that and H/2 above.
-Each is the median of the face's points at full resolution, so within a fraction of a millimetre where the spans'
+Each is the median of the face's points, not voxelled (at the tracker's image stride), so within a fraction of a millimetre where the spans'
 ends, outlines, are off by several (the spans along y of the frames seeing both ends fell 0.1-6.9 mm short of the
 height on the v5 laptops).
 
@@ -33,7 +33,7 @@ merged, to the model of the others (translation only, pairs with agreeing normal
 42-81 by 1.25-1.6 mm of the 3.5 they were off along y: the lid's inner face and the base's front face pin y only
 through the lid's slope.
 
-Measured on every ``every``-th frame (a frame's crop at full resolution and its normals near the faces, ~11 ms of CPU
+Measured on every ``every``-th frame (a frame's crop, not voxelled, and its normals near the faces, ~11 ms of CPU
 on a laptop, the broad faces' points one in ``BROAD_FACE_STRIDE``), the frames between taking the offset
 interpolated from the measured frames about them, held beyond the first and last.
 """
@@ -78,6 +78,11 @@ END_FOOT_M = 0.005
 MIN_END_POINTS = 100
 #: the end face's height: these percentiles of its points' y (its edges seen face-on)
 HEIGHT_PERCENTILES = (1.0, 99.0)
+#: a base at least this share of the height is no laptop's (v5 laptops: 0.06-0.09)
+MAX_THICKNESS_SHARE = 0.25
+#: the height measured may differ from the placed box's side along y by this share of it at most (the placed extents
+#: are off by up to 8 % in the issue's setting; the height measured is 0.5-2 mm short)
+MAX_HEIGHT_SHARE = 0.15
 #: a face's measure of the centre further than this (m) from the median of all frames' measures is not the object's
 MAX_DEVIATION_M = 0.008
 #: the broad faces' points (the underside, the keyboard) are taken one in this many (their medians need few)
@@ -87,12 +92,13 @@ NORMAL_NEIGHBOURS = 16
 
 
 class Levels(NamedTuple):
-    """What one frame's faces along y measure (m, object frame y from the box centre); nan where not seen."""
+    """What one frame's faces along y measure (m: the levels object-frame y from the box centre, the thickness a
+    length); nan where not seen."""
 
     bottom: float  #: the base's underside
     keyboard: float  #: the base's top face
     top: float  #: the lid's top edge
-    thickness: float  #: the base's thickness, on an end face's half away from the lid
+    thickness: float  #: the base's thickness (a length, m), on an end face's half away from the lid
 
 
 def frame_levels(points: np.ndarray, normals: np.ndarray, lid_side: float) -> Levels:
@@ -139,10 +145,13 @@ def frame_levels(points: np.ndarray, normals: np.ndarray, lid_side: float) -> Le
     return Levels(bottom, keyboard, top, thickness)
 
 
-def height_offsets(levels: list[Levels | None]) -> np.ndarray:
+def height_offsets(levels: list[Levels | None], box_height: float | None = None) -> np.ndarray:
     """Per frame (in order): how far (m) the object's centre lies along y from the box centre, from the faces the
     frame sees (module doc), interpolated between measured frames for the others (held beyond the first and last);
-    zeros where the thickness or the lid's height over the keyboard was never measured, or no frame saw a face."""
+    zeros where the thickness or the lid's height over the keyboard was never measured, or no frame saw a face, or
+    the measured height is no laptop's: the thickness ``MAX_THICKNESS_SHARE`` of it or more, or the height further than
+    ``MAX_HEIGHT_SHARE`` from ``box_height`` (m, the placed box's side along y, where given): the lid's own end face
+    taken for the base's (the lid's side misjudged) measures a thickness of the lid's height."""
     table = np.array([lv if lv is not None else (np.nan,) * 4 for lv in levels], dtype=np.float64).reshape(-1, 4)
     bottom, keyboard, top, thickness = table.T
     zeros = np.zeros(len(levels))
@@ -151,6 +160,8 @@ def height_offsets(levels: list[Levels | None]) -> np.ndarray:
         return zeros
     t = float(np.nanmedian(thickness))
     height = float(np.nanmedian(lid)) + t
+    if not 0 < t < MAX_THICKNESS_SHARE * height or (box_height is not None and abs(height - box_height) > MAX_HEIGHT_SHARE * box_height):
+        return zeros
     # each face's own measure of the centre (rows: frames, columns: faces); the mean of those a frame sees
     measures = np.stack([bottom + height / 2, top - height / 2, keyboard - t + height / 2], axis=1)
     if not np.any(np.isfinite(measures)):
@@ -170,7 +181,7 @@ def height_offsets(levels: list[Levels | None]) -> np.ndarray:
 
 
 def measure_levels(tracker: Tracker, frame_id: str, pose: np.ndarray, lid_side: float) -> Levels | None:
-    """:func:`frame_levels` of the frame's points in its box (full resolution) at ``pose`` (4x4 object to camera, the
+    """:func:`frame_levels` of the frame's points in its box (not voxelled: the store's image stride) at ``pose`` (4x4 object to camera, the
     snapped object frame); normals only of the points near the faces (they cost ~10 ms per 10,000 points); None
     without enough points."""
     points, _ = tracker.store.crop(frame_id, pose, tracker.box, tracker.config.crop_margin, None, keep=False)
@@ -180,7 +191,7 @@ def measure_levels(tracker: Tracker, frame_id: str, pose: np.ndarray, lid_side: 
     x, y = local[:, 0], local[:, 1]
     y_low, y_high = np.percentile(y, END_PERCENTILES)
     x_low, x_high = np.percentile(x, END_PERCENTILES)
-    # the thin faces (the lid's edge, the ends) at full resolution; the broad ones at the low end (the underside, the
+    # the thin faces (the lid's edge, the ends) every point; the broad ones at the low end (the underside, the
     # keyboard), which only give a median, every ``BROAD_FACE_STRIDE``-th point: the normals are most of the cost
     thin = (y >= y_high - FACE_BAND_M) | (x <= x_low + END_BAND_M) | (x >= x_high - END_BAND_M)
     broad = np.flatnonzero((y <= y_low + KEYBOARD_BAND_M) & ~thin)
@@ -201,6 +212,6 @@ def centred_heights(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarra
     centre its faces give (:func:`height_offsets`), measured on every ``every``-th frame on the tracker's workers."""
     measured_ids = [f for f in ids[:: max(int(every), 1)] if f not in tracker.store.errors]
     measured = dict(zip(measured_ids, ordered_map(lambda f: measure_levels(tracker, f, poses[f], lid_side), measured_ids, tracker.config.worker_count())))
-    offsets = height_offsets([measured.get(f) for f in ids])
+    offsets = height_offsets([measured.get(f) for f in ids], float(tracker.box[1]))
     up = np.array([0.0, 1.0, 0.0])
     return {**poses, **{f: centred(poses[f], offset, up) for f, offset in zip(ids, offsets)}}
