@@ -33,8 +33,8 @@ merged, to the model of the others (translation only, pairs with agreeing normal
 42-81 by 1.25-1.6 mm of the 3.5 they were off along y: the lid's inner face and the base's front face pin y only
 through the lid's slope.
 
-Measured on every ``every``-th frame (a frame's crop, not voxelled, and its normals near the faces, ~11 ms of CPU
-on a laptop, the broad faces' points one in ``BROAD_FACE_STRIDE``), the frames between taking the offset
+Measured on every ``every``-th frame (a frame's crop, not voxelled, and its normals where a face may lie, ~9 ms of
+CPU on a laptop, the broad faces' points one in ``BROAD_FACE_STRIDE``), the frames between taking the offset
 interpolated from the measured frames about them, held beyond the first and last.
 """
 
@@ -188,13 +188,16 @@ def measure_levels(tracker: Tracker, frame_id: str, pose: np.ndarray, lid_side: 
     if len(points) < MIN_FACE_POINTS:
         return None
     local = untransform(pose, points)
-    x, y = local[:, 0], local[:, 1]
+    x, y, z = local.T
     y_low, y_high = np.percentile(y, END_PERCENTILES)
     x_low, x_high = np.percentile(x, END_PERCENTILES)
-    # the thin faces (the lid's edge, the ends) every point; the broad ones at the low end (the underside, the
-    # keyboard), which only give a median, every ``BROAD_FACE_STRIDE``-th point: the normals are most of the cost
-    thin = (y >= y_high - FACE_BAND_M) | (x <= x_low + END_BAND_M) | (x >= x_high - END_BAND_M)
-    broad = np.flatnonzero((y <= y_low + KEYBOARD_BAND_M) & ~thin)
+    along = -np.sign(lid_side) * z
+    # normals only where frame_levels may look (the normals are most of the cost): the thin faces (the lid's edge;
+    # the ends, on the half away from the lid and below the box centre) every point, the broad ones at the low end
+    # (the underside, the keyboard), which only give a median, every ``BROAD_FACE_STRIDE``-th point
+    ends = ((x <= x_low + END_BAND_M) | (x >= x_high - END_BAND_M)) & (along > END_CLEAR_M) & (y < 0)
+    thin = ((y >= y_high - FACE_BAND_M) & (y > 0)) | ends
+    broad = np.flatnonzero((y <= y_low + KEYBOARD_BAND_M) & (y < 0) & ~thin)
     near = thin.copy()
     near[broad[::BROAD_FACE_STRIDE]] = True
     if np.count_nonzero(near) < MIN_FACE_POINTS:
