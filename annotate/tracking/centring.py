@@ -181,16 +181,22 @@ def end_faces(tracker: Tracker, frame_id: str, pose: np.ndarray, direction: np.n
     if np.count_nonzero(near) < MIN_FACE_POINTS:
         return float("nan"), float("nan")
     points, along = points[near], along[near]
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(FACE_NORMAL_NEIGHBOURS))
-    cloud.orient_normals_towards_camera_location(np.zeros(3))  # camera frame: the surfaces seen face the camera
-    outward = np.asarray(cloud.normals) @ (pose[:3, :3] @ direction)
+    outward = facing_normals(points) @ (pose[:3, :3] @ direction)
     cone = np.cos(np.deg2rad(FACE_CONE_DEG))
     faces = []
     for sign, end in ((-1.0, low), (1.0, high)):
         face = (sign * outward > cone) & (sign * (along - end) >= -FACE_BAND_M)
         faces.append(float(np.median(along[face])) if np.count_nonzero(face) >= MIN_FACE_POINTS else float("nan"))
     return faces[0], faces[1]
+
+
+def facing_normals(points: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3; camera frame) of a frame's points ``points`` (N, 3; camera frame, m, not voxelled), from
+    their ``FACE_NORMAL_NEIGHBOURS`` nearest points, each turned to face the camera (the surfaces a frame sees do)."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(FACE_NORMAL_NEIGHBOURS))
+    cloud.orient_normals_towards_camera_location(np.zeros(3))
+    return np.asarray(cloud.normals)
 
 
 def centre_offsets(spans: list[Span | tuple[float, float] | None], tolerance: float, window: int) -> np.ndarray:

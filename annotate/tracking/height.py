@@ -43,16 +43,13 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import open3d as o3d
 
 from evaluate.geometry import untransform
 
-from .centring import centred
+from .centring import END_PERCENTILES, centred, facing_normals
 from .tracker import Tracker
 from .workers import ordered_map
 
-#: the ends of a frame's points along an axis: percentiles, so that a few stray points do not set them
-END_PERCENTILES = (0.5, 99.5)
 #: a face along y: normals within this of +-y (the lid's top edge is tilted back with the lid by up to 30 deg)
 FACE_CONE_DEG = 35.0
 #: the base's top face (the keyboard): normals within this of +y (the lid's inner face leans 60-85 deg off y)
@@ -87,8 +84,6 @@ MAX_HEIGHT_SHARE = 0.15
 MAX_DEVIATION_M = 0.008
 #: the broad faces' points (the underside, the keyboard) are taken one in this many (their medians need few)
 BROAD_FACE_STRIDE = 4
-#: neighbours for a point's normal (at the image's resolution)
-NORMAL_NEIGHBOURS = 16
 
 
 class Levels(NamedTuple):
@@ -181,9 +176,9 @@ def height_offsets(levels: list[Levels | None], box_height: float | None = None)
 
 
 def measure_levels(tracker: Tracker, frame_id: str, pose: np.ndarray, lid_side: float) -> Levels | None:
-    """:func:`frame_levels` of the frame's points in its box (not voxelled: the store's image stride) at ``pose`` (4x4 object to camera, the
-    snapped object frame); normals only of the points near the faces (they cost ~10 ms per 10,000 points); None
-    without enough points."""
+    """:func:`frame_levels` of the frame's points in its box (not voxelled: the store's image stride) at ``pose`` (4x4
+    object to camera, the snapped object frame), their normals from :func:`centring.facing_normals`, only where a face
+    may lie (they cost ~10 ms per 10,000 points); None without enough points."""
     points, _ = tracker.store.crop(frame_id, pose, tracker.box, tracker.config.crop_margin, None, keep=False)
     if len(points) < MIN_FACE_POINTS:
         return None
@@ -202,11 +197,8 @@ def measure_levels(tracker: Tracker, frame_id: str, pose: np.ndarray, lid_side: 
     near[broad[::BROAD_FACE_STRIDE]] = True
     if np.count_nonzero(near) < MIN_FACE_POINTS:
         return None
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[near]))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
-    cloud.orient_normals_towards_camera_location(np.zeros(3))  # camera frame: the surfaces seen face the camera
     normals = np.full_like(local, np.nan)  # nan: not near a face, in no face's cone
-    normals[near] = np.asarray(cloud.normals) @ pose[:3, :3]
+    normals[near] = facing_normals(points[near]) @ pose[:3, :3]
     return frame_levels(local, normals, lid_side)
 
 
