@@ -71,7 +71,9 @@ def test_point_to_plane_equals_open3d_bit_for_bit(deg, mm, seed):
     init = invert(_pose(0.0, 0.0, seed))  # T_obj_cam guess: the object ahead, unrotated
     source = _source_cloud(points, None)
     with open3d_threads(1):  # Open3D's reductions sum in one order only on one thread
-        for params in (RegistrationParams(), RegistrationParams(iterations=3), RegistrationParams(max_distance=0.02, fine_distance=0.002)):
+        # all points in both stages, as registration_icp runs them (the thinned coarse stage: the test below)
+        for params in (RegistrationParams(coarse_points=0), RegistrationParams(iterations=3, coarse_points=0),
+                       RegistrationParams(max_distance=0.02, fine_distance=0.002, coarse_points=0)):
             expected = _icp_open3d("point_to_plane", source, target, init, params)
             got = icp.point_to_plane(source, target, init, params)
             _assert_same(got, expected)
@@ -89,9 +91,37 @@ def test_point_to_plane_equals_open3d_at_identity_and_without_correspondences():
     with open3d_threads(1):
         for points, init in cases:
             source = _source_cloud(points, None)
-            expected = _icp_open3d("point_to_plane", source, target, init, RegistrationParams())
-            got = icp.point_to_plane(source, target, init, RegistrationParams())
+            expected = _icp_open3d("point_to_plane", source, target, init, RegistrationParams(coarse_points=0))
+            got = icp.point_to_plane(source, target, init, RegistrationParams(coarse_points=0))
             _assert_same(got, expected)
+
+
+def test_thinned_coarse_stage_equals_open3d_on_every_kth_point():
+    """With ``coarse_points``, the coarse stage is Open3D's ICP on every k-th point and the fine stage on all of them."""
+    model = _object_points(3)
+    target = ModelTarget(model, voxel_size=0.003)
+    T_cam_obj = _pose(6.0, 8.0, 4)
+    points = _view(model, T_cam_obj, 4)
+    init = invert(_pose(0.0, 0.0, 4))
+    source = _source_cloud(points, None)
+    params = RegistrationParams(coarse_points=1000)
+    k = int(np.ceil(len(points) / 1000))
+    assert k >= 3  # the test thins for real
+    reg = o3d.pipelines.registration
+    criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5, max_iteration=params.iterations)
+    with open3d_threads(1):
+        T = init
+        for cloud, distance in ((_source_cloud(points[::k], None), params.max_distance), (source, params.fine_distance)):
+            estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max(params.kernel, distance / 2)))
+            result = reg.registration_icp(cloud, target.cloud, distance, T, estimation, criteria)
+            T = result.transformation
+        got = icp.point_to_plane(source, target, init, params)
+    _assert_same(got, (np.asarray(T), float(result.fitness), float(result.inlier_rmse)))
+    # and it lands where the ICP on all points lands
+    full = icp.point_to_plane(source, target, init, RegistrationParams(coarse_points=0))
+    assert np.abs(got[0][:3, 3] - full[0][:3, 3]).max() < 2e-4
+    assert icp.thinned(source, 0) is source and icp.thinned(source, len(points)) is source
+    assert np.array_equal(np.asarray(icp.thinned(source, 1000).points), points[::k])
 
 
 def test_nearest_model_points_follow_moving_points_exactly():

@@ -182,6 +182,7 @@ class RegistrationParams:
     fine_distance: float = 0.004  #: correspondence cut of the fine stage
     kernel: float = 0.003  #: robust kernel width (Tukey k, kiss-icp's sigma)
     iterations: int = 30  #: per stage
+    coarse_points: int = 1500  #: point_to_plane: the coarse stage registers at most this many of the points (every k-th; 0: all), the fine stage all of them (icp.point_to_plane)
     quality_distance: float = 0.004  #: inlier distance for fitness / RMSE
     facing: bool = True  #: point_to_plane: pair a frame point only with a model point whose surface faces the frame's camera (thin slabs; see the module doc)
     facing_figures: bool = True  #: ... and measure fitness and RMSE on those pairs too (False: on all pairs within quality_distance, as Open3D does)
