@@ -155,3 +155,42 @@ def test_a_map_started_on_another_thread_meanwhile_runs_there_as_a_loop():
     assert not thread.is_alive() and first == [0, 1, 2, 3]
     assert inner == [(k, os.getpid()) for k in range(3)]  # here, not in the first map's workers
     assert workers.ordered_map(lambda k: os.getpid(), range(2), 2)[0] != os.getpid()  # and the lock is free again
+
+
+@needs_fork
+def test_a_task_pool_runs_each_batch_on_its_workers_as_a_loop_would():
+    state = np.arange(500.0)
+    steps = []
+    with workers.TaskPool(lambda k, scale: (k, float(state[k::5].sum()) * scale, os.getpid()), 2) as pool:
+        # each batch's arguments come from the one before, as a frame's starts from its predecessor's outcome
+        scale = 1.0
+        for k in range(6):
+            out = pool.map([(k, scale), (k + 100, scale)])
+            assert [r[:2] for r in out] == [(j, float(state[j::5].sum()) * scale) for j in (k, k + 100)]
+            steps.append({r[2] for r in out})
+            scale = out[0][1] % 7 + 1
+        assert pool.map([]) == [] and pool.map([(1, 2.0)])[0][2] == os.getpid()  # a lone task runs here
+        assert workers.ordered_map(lambda k: os.getpid(), range(3), 2) == [os.getpid()] * 3  # meanwhile a map is a loop
+    assert os.getpid() not in set.union(*steps) and len(set.union(*steps)) <= 2  # the same two workers throughout
+    assert workers._job is None and workers._forking.acquire(blocking=False)
+    workers._forking.release()
+
+
+def test_a_task_pool_of_one_worker_is_a_loop_here():
+    with workers.TaskPool(lambda k: (k, os.getpid()), 1) as pool:
+        assert pool.map([(1,), (2,)]) == [(1, os.getpid()), (2, os.getpid())]
+
+
+@needs_fork
+def test_a_task_pool_whose_worker_dies_raises_and_frees_the_lock():
+    def dies_on_three(k: int) -> int:
+        if k == 3:
+            os._exit(1)
+        return k
+
+    with pytest.raises(workers.WorkerDied, match="--workers 1"):
+        with workers.TaskPool(dies_on_three, 2) as pool:
+            assert pool.map([(1,), (2,)]) == [1, 2]
+            pool.map([(3,), (4,)])
+    assert workers._job is None
+    assert workers.ordered_map(lambda k: k + 1, range(3), 2) == [1, 2, 3]

@@ -1,4 +1,5 @@
-"""Independent tracking work spread over processes: an ordered map whose results equal a plain loop's.
+"""Independent tracking work spread over processes: an ordered map whose results equal a plain loop's, and a pool
+kept for small batches that a sequential pass hands out one after another (TaskPool).
 
 Tracking's per-frame work is numpy on a few thousand points at a time, which holds the GIL: two threads
 measured 15-25 % more CPU for a 12 % shorter laptop run and slower small objects. Forked processes share
@@ -64,6 +65,10 @@ class WorkerDied(RuntimeError):
     """A worker process ended without a result (killed, say by the out-of-memory killer, or crashed)."""
 
 
+_DIED = ("a tracking worker process died (killed, as by the out-of-memory killer, or crashed); "
+         "tracking on one process (annotate --track --workers 1, TrackingConfig.workers = 1) avoids it")
+
+
 def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], workers: int = 1, done: Callable[[Item, Result], None] | None = None) -> list[Result]:
     """``[function(item) for item in items]``, on up to ``workers`` forked processes where there are several items.
 
@@ -103,8 +108,7 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
                     done(item, result)
         except BrokenProcessPool as error:
             _abandon(pool, others)
-            raise WorkerDied("a tracking worker process died (killed, as by the out-of-memory killer, or crashed); "
-                             "tracking on one process (annotate --track --workers 1, TrackingConfig.workers = 1) avoids it") from error
+            raise WorkerDied(_DIED) from error
         except BaseException:
             _abandon(pool, others)
             raise
@@ -113,6 +117,78 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
     finally:
         _job = None
         _forking.release()
+
+
+def _call_with(args: tuple):
+    function, _ = _job
+    return function(*args)
+
+
+class TaskPool:
+    """Forked workers kept for many small batches whose arguments are known only as the work goes on (a sequential
+    pass that registers each frame from its predecessor's outcome: the starts of one frame run at once).
+
+    ``function(*args)`` runs on the workers, which inherit it and all state as it is when the pool is made (make it
+    after the state the tasks read, as for :func:`ordered_map`); the arguments go out and the results come back
+    pickled, so keep both small (a frame id and a 4x4 pose). :meth:`map` returns what a loop would, in order.
+    Use it as a context manager. Where there is one worker, or no fork (not Linux, inside a worker, another pool or
+    map forking on another thread, a fork refused), the batches run as loops here; a worker that dies raises
+    :class:`WorkerDied`.
+    """
+
+    def __init__(self, function: Callable, workers: int) -> None:
+        self.function = function
+        self.workers = int(workers)
+        self._pool: ProcessPoolExecutor | None = None
+        self._others: set = set()
+        self._held = False
+
+    def __enter__(self) -> "TaskPool":
+        global _job
+        if self.workers > 1 and not _in_worker and sys.platform.startswith("linux") and _forking.acquire(blocking=False):
+            self._held = True
+            _job = (self.function, None)
+            self._others = set(multiprocessing.active_children())
+            try:
+                self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"), initializer=_mark_worker)
+            except OSError:
+                self._pool = None
+        return self
+
+    def map(self, batch: Sequence[tuple]) -> list:
+        """``[function(*args) for args in batch]``, the items of the batch at once on the workers."""
+        batch = list(batch)
+        if self._pool is None or len(batch) <= 1:
+            return [self.function(*args) for args in batch]
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+                futures = [self._pool.submit(_call_with, args) for args in batch]  # the first submit forks the workers
+        except OSError:  # a fork refused: no pool from here on
+            _abandon(self._pool, self._others)
+            self._pool = None
+            return [self.function(*args) for args in batch]
+        try:
+            return [future.result() for future in futures]
+        except BrokenProcessPool as error:
+            _abandon(self._pool, self._others)
+            self._pool = None
+            raise WorkerDied(_DIED) from error
+
+    def __exit__(self, kind, error, trace) -> None:
+        global _job
+        try:
+            if self._pool is not None:
+                if error is None:
+                    self._pool.shutdown()
+                else:
+                    _abandon(self._pool, self._others)
+        finally:
+            self._pool = None
+            if self._held:
+                _job = None
+                _forking.release()
+                self._held = False
 
 
 def _abandon(pool: ProcessPoolExecutor | None, others: set) -> None:
