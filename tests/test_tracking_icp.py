@@ -152,3 +152,15 @@ def test_identity_check_follows_eigen():
     assert icp.is_identity(T)  # within Eigen's default precision
     T[0, 3] = 1e-9
     assert not icp.is_identity(T)
+
+
+def test_facing_for_some_points_equals_facing_for_all():
+    model = _object_points(4)
+    rng = np.random.default_rng(2)
+    views = model - model.mean(axis=0)  # outward: seen from outside
+    target = ModelTarget(model, voxel_size=0.003, views=views)
+    for camera in (np.array([0.0, 0.0, 0.5]), np.array([0.3, -0.2, 0.1]), np.zeros(3)):
+        every = target.facing(camera)
+        index = rng.integers(0, len(model), 700)
+        assert np.array_equal(target.facing(camera, index), every[index])
+        assert np.array_equal(every, np.asarray(target.cloud.normals) @ camera > np.einsum("ij,ij->i", np.asarray(target.cloud.normals), model))

@@ -167,7 +167,7 @@ def correspondences(nearest: NearestModelPoints, query: np.ndarray, distance: fl
         # a frame sees only surfaces that face its camera: a model point whose (oriented) surface faces away
         # from the camera at this pose is the other side of a thin wall (a laptop's base seen from below,
         # the model holding only its top), no partner for the frame point beside it
-        facing = nearest.target.facing(camera)[index]
+        facing = nearest.target.facing(camera, index)
         rows, index, d2 = rows[facing], index[facing], d2[facing]
     if len(rows) == 0:
         return np.zeros((0, 2), dtype=np.int32), 0.0, 0.0

@@ -109,12 +109,18 @@ class ModelTarget:
         self._kiss_map = None
         self._tree = None
 
-    def facing(self, camera: np.ndarray) -> np.ndarray:
-        """Per model point (M,), whether its oriented surface faces a camera at ``camera`` (3,), object frame, m
-        (targets built with ``views`` only: :attr:`oriented`)."""
+    def facing(self, camera: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
+        """Per model point (M,), or per point of ``index`` (K,), whether its oriented surface faces a camera at
+        ``camera`` (3,), object frame, m (targets built with ``views`` only: :attr:`oriented`)."""
         if not self.oriented:
             raise ValueError("the model's normals are not oriented: build the target with views")
-        return self._normals @ np.asarray(camera, dtype=np.float64) > self._offsets
+        camera = np.asarray(camera, dtype=np.float64)
+        if index is None:
+            normals, offsets = self._normals, self._offsets
+        else:  # an ICP iteration asks for its pairs' few thousand of the model's tens of thousands
+            normals, offsets = self._normals[index], self._offsets[index]
+        # the sum written out, in one order for all points: a matrix product's may differ by a last bit with the count
+        return (normals[:, 0] * camera[0] + normals[:, 1] * camera[1]) + normals[:, 2] * camera[2] > offsets
 
     def tree(self):
         """scipy's KD-tree of the model points, built once (smoothing queries every frame against one target)."""
