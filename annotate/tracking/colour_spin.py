@@ -91,6 +91,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluate.geometry import untransform
 
+from .sampling import every_kth
 from .symmetry import fit_symmetry_axis
 from .workers import ordered_map
 
@@ -170,7 +171,7 @@ class ColourSpinCheck:
         self.points = np.asarray(model_points, dtype=np.float64)
         self.tree = cKDTree(self.points)
         # the axis and the roundness from every k-th model point (a spread sample) bound their time
-        self._sample = self.points[:: int(np.ceil(len(self.points) / MAX_AXIS_POINTS))] if len(self.points) > MAX_AXIS_POINTS else self.points
+        self._sample = every_kth(self.points, MAX_AXIS_POINTS)
         self.axis, self.point, _, _ = fit_symmetry_axis(self._sample, normal_radius=4 * tracker.config.voxel_size)
         self._images: dict[str, np.ndarray] = {}
         # spun(q, deg) = (q - point) @ R(deg) + point, one rotation per angle tried
@@ -186,8 +187,7 @@ class ColourSpinCheck:
     def _local(self, frame_id: str, pose: np.ndarray) -> np.ndarray:
         """A frame's voxel points at ``pose``, object frame (N, 3) (every k-th beyond MAX_CHECK_POINTS)."""
         points, _ = self.tracker.crop(frame_id, pose, margin=0.0)
-        if len(points) > MAX_CHECK_POINTS:
-            points = points[:: int(np.ceil(len(points) / MAX_CHECK_POINTS))]
+        points = every_kth(points, MAX_CHECK_POINTS)
         return untransform(pose, points)
 
     def _colours(self, frame_id: str, points_cam: np.ndarray) -> np.ndarray:
@@ -201,8 +201,7 @@ class ColourSpinCheck:
         """A frame's pixels in the box at ``pose`` (not voxel-averaged: a voxel blurs the label's edges): their
         object-frame points (N, 3) and chromaticities (N, 3), every k-th beyond MAX_COLOUR_PIXELS."""
         points, _ = self.tracker.store.crop(frame_id, pose, self.tracker.box, 0.0, None)
-        if len(points) > MAX_COLOUR_PIXELS:
-            points = points[:: int(np.ceil(len(points) / MAX_COLOUR_PIXELS))]
+        points = every_kth(points, MAX_COLOUR_PIXELS)
         return untransform(pose, points), chromaticity(self._colours(frame_id, points))
 
     def free_spin(self, local: np.ndarray) -> bool:

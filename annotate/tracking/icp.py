@@ -32,6 +32,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import open3d as o3d
 
+from .sampling import every_kth
+
 if TYPE_CHECKING:  # registration imports this module
     from .registration import ModelTarget, RegistrationParams
 
@@ -245,9 +247,8 @@ def point_to_plane(source: o3d.geometry.PointCloud, target: "ModelTarget", init:
 
 
 def thinned(source: o3d.geometry.PointCloud, count: int) -> o3d.geometry.PointCloud:
-    """``source`` itself where it holds at most ``count`` points (0: no limit), otherwise every k-th of its points,
-    the fewest k that leaves at most ``count`` (voxel order is spatially scattered: every k-th keeps the spread)."""
-    n = len(source.points)
-    if count <= 0 or n <= count:
-        return source
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(source.points)[:: int(np.ceil(n / count))]))
+    """``source`` itself where it holds at most ``count`` points (0: no limit), otherwise a cloud of every k-th of its
+    points (sampling.every_kth)."""
+    points = np.asarray(source.points)
+    kept = every_kth(points, count)
+    return source if kept is points else o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept))

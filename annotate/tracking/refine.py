@@ -220,8 +220,9 @@ class _Settler:
             # constant-velocity prediction, and keep the start that fits the model best
             starts = [last[-1]] + ([predict(last[-1], last[-2])] if len(last) > 1 else [])
             batch = [(frame_id, init) for init in starts]
-            registered = registrations(batch) if registrations is not None else [tracker.register(f, init, model, hits) for f, init in batch]
-            candidates = list(registered) + candidates
+            if registrations is None:
+                registrations = lambda pairs: [tracker.register(f, init, model, hits) for f, init in pairs]  # noqa: E731
+            candidates = registrations(batch) + candidates
         result = None
         for candidate in candidates:
             if result is None or (candidate.ok and (not result.ok or candidate.figures.get("fitness", 0.0) > result.figures.get("fitness", 0.0))):

@@ -45,6 +45,7 @@ import numpy as np
 from evaluate.geometry import untransform
 
 from .registration import ModelTarget
+from .sampling import every_kth
 from .smooth import registration_information
 from .tracker import FrameResult, Tracker
 from .workers import counting, ordered_map
@@ -123,16 +124,14 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
         points, _ = tracker.crop(frame_id, pose)
         if len(points) < config.min_points:
             return None
-        if config.max_points and len(points) > config.max_points:
-            points = points[:: int(np.ceil(len(points) / config.max_points))]
+        points = every_kth(points, config.max_points)
         local = untransform(pose, points)
         direction, ratio = weak_direction(local, target, 2 * config.voxel_size, config.information_sigma)
         if ratio > config.max_slide_ratio:
             return None
         # a wider crop: the part of the object that a slid box cut off must count again
         wide, _ = tracker.crop(frame_id, pose, 0.75 * config.max_slide_m)
-        if len(wide) > MAX_SEARCH_POINTS:
-            wide = wide[:: int(np.ceil(len(wide) / MAX_SEARCH_POINTS))]
+        wide = every_kth(wide, MAX_SEARCH_POINTS)
         wide_local = untransform(pose, wide)
         shift, fitness, at_zero, beyond = best_shift(wide_local, target, direction, config.max_slide_m, distance)
         # a best shift at the end of the range is no peak found (measured: with a +-6 cm range and no such rule, laptop

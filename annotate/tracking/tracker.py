@@ -13,6 +13,7 @@ from .frames import FrameStore
 from .model import ObjectModel
 from .quality import in_box_share
 from .registration import register
+from .sampling import every_kth
 from .symmetry import closest_about_y
 
 
@@ -65,11 +66,8 @@ class Tracker:
             figures["error"] = f"only {len(points)} points in the box"
             return FrameResult(init_pose.copy(), False, figures)
         target = model.target(min_hits, refresh_every=refresh_every)
-        if config.max_points and len(points) > config.max_points:
-            # a large flat object (a laptop) crops to thousands of voxels: every k-th keeps the spread
-            # (voxel order is spatially scattered) and bounds the ICP's time
-            keep = slice(None, None, int(np.ceil(len(points) / config.max_points)))
-            points, colors = points[keep], (colors[keep] if colors is not None else None)
+        # a large flat object (a laptop) crops to thousands of voxels: every k-th bounds the ICP's time
+        points, colors = every_kth(points, config.max_points), (every_kth(colors, config.max_points) if colors is not None else None)
         result = register(points, target, invert(init_pose), config.backend, config.registration, colors)
         if not result.ok:
             figures["error"] = result.reason

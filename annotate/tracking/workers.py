@@ -25,7 +25,8 @@ import os
 import sys
 import threading
 import warnings
-from typing import Callable, Iterable, Sequence, TypeVar
+from contextlib import contextmanager
+from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 Item = TypeVar("Item")
 Result = TypeVar("Result")
@@ -69,6 +70,26 @@ _DIED = ("a tracking worker process died (killed, as by the out-of-memory killer
          "tracking on one process (annotate --track --workers 1, TrackingConfig.workers = 1) avoids it")
 
 
+def _may_fork(count: int) -> bool:
+    """Whether ``count`` workers may be forked now, taking the fork lock if so (release it when the workers are done):
+    one map or pool at a time forks (the workers read _job); one started meanwhile on another thread runs as a loop."""
+    return count > 1 and not _in_worker and sys.platform.startswith("linux") and _forking.acquire(blocking=False)
+
+
+def _new_pool(count: int) -> ProcessPoolExecutor:
+    """A pool of ``count`` workers, forked at its first submit."""
+    return ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("fork"), initializer=_mark_worker)
+
+
+@contextmanager
+def _quiet_fork() -> Iterator[None]:
+    """Around the submits that fork: Python 3.12+ warns of forking a process with threads (the browser app's, tqdm's
+    monitor), and the workers run only the job's function and exit, touching no lock those threads may hold."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+        yield
+
+
 def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], workers: int = 1, done: Callable[[Item, Result], None] | None = None) -> list[Result]:
     """``[function(item) for item in items]``, on up to ``workers`` forked processes where there are several items.
 
@@ -81,8 +102,7 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
     global _job
     items = list(items)
     count = min(int(workers), len(items))
-    # one map at a time forks (the workers read _job): one started meanwhile on another thread runs as a loop
-    if count <= 1 or _in_worker or not sys.platform.startswith("linux") or not _forking.acquire(blocking=False):
+    if not _may_fork(count):
         return _loop(function, items, done)
     _job = (function, items)
     pool = None
@@ -91,11 +111,8 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
     others = set(multiprocessing.active_children())
     try:
         try:
-            pool = ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("fork"), initializer=_mark_worker)
-            with warnings.catch_warnings():
-                # Python 3.12+ warns of forking a process with threads (the browser app's, tqdm's monitor): the workers
-                # run only ``function`` and exit, touching no lock those threads may hold
-                warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+            pool = _new_pool(count)
+            with _quiet_fork():
                 results = pool.map(_call, range(len(items)))  # submits every item: the workers are forked here
         except OSError:  # a fork refused (memory, process slots): end those already forked, and do the work here
             _abandon(pool, others)
@@ -145,12 +162,12 @@ class TaskPool:
 
     def __enter__(self) -> "TaskPool":
         global _job
-        if self.workers > 1 and not _in_worker and sys.platform.startswith("linux") and _forking.acquire(blocking=False):
+        if _may_fork(self.workers):
             self._held = True
             _job = (self.function, None)
             self._others = set(multiprocessing.active_children())
             try:
-                self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"), initializer=_mark_worker)
+                self._pool = _new_pool(self.workers)
             except OSError:
                 self._pool = None
         return self
@@ -161,8 +178,7 @@ class TaskPool:
         if self._pool is None or len(batch) <= 1:
             return [self.function(*args) for args in batch]
         try:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=".*fork.*", category=DeprecationWarning)
+            with _quiet_fork():
                 futures = [self._pool.submit(_call_with, args) for args in batch]  # the first submit forks the workers
         except OSError:  # a fork refused: no pool from here on
             _abandon(self._pool, self._others)
