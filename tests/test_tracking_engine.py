@@ -244,14 +244,18 @@ def test_the_facing_test_is_left_out_of_the_chains_of_a_nearly_round_object_but_
     assert engine._nearly_round(tracker, {f: annotation.frames[f].matrix for f in MANUAL})  # the mug's body
     assert not engine._nearly_round(tracker, {})  # no model: nothing to judge
     used = {"chain": set(), "refine": set()}
+    follow = {"chain": set(), "refine": set()}
     for name, stage in (("run_chain", "chain"), ("coarse_round", "refine"), ("refine_all", "refine")):
         def spy(tracker, *args, _real=getattr(engine, name), _stage=stage, **kwargs):
             used[_stage].add(tracker.config.registration.facing)
+            follow[_stage].add(tracker.config.chain_follow_fitness)
             return _real(tracker, *args, **kwargs)
         monkeypatch.setattr(engine, name, spy)
     facing = track_sequence(open_sequence(root), annotation, config=config)
     # the chains lose a mug's spin with the test; the model of all frames holds both sides of its bottom and needs it
     assert used == {"chain": {False}, "refine": {True}}
+    # nor do its chains follow frames below min_fitness: they took a mug's spin drift where its handle was hidden
+    assert follow == {"chain": {config.min_fitness}, "refine": {config.chain_follow_fitness}}
     assert all(np.array_equal(facing.frames[f].matrix, tracked.frames[f].matrix) for f in tracked.frames)
 
 

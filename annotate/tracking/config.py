@@ -20,6 +20,9 @@ class TrackingConfig:
     crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
     extents_slack: float = 0.08  #: the box is grown by this share too (hand-placed extents are off by up to ~8%)
     registration: RegistrationParams = field(default_factory=RegistrationParams)
+    chain_follow_fitness: float = 0.2  #: a chain follows a frame below min_fitness down to this fitness (propagate.follows; >= min_fitness: off)
+    chain_follow_step_deg: float = 5.0  #: ... where its registration turned it at most this far from where it started
+    chain_follow_step_m: float = 0.01  #: ... and moved it at most this far (m)
     model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
     coarse_voxel_factor: float = 2.0  #: ... after one round against a model this many times coarser (refine.coarse_round; <= 1: none)

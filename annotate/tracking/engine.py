@@ -413,8 +413,11 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     nearly_round = not symmetric and _nearly_round(tracker, placed)
     if config.registration.facing and nearly_round:
         # measured (v5, seeds 0-3): pairing only same-facing surfaces lets a mug's chains lose its spin where the
-        # handle is hidden (seed 1: 30 deg, p90 4.2 -> 47 deg), while it helps every other shape
-        chaining = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing=False)))
+        # handle is hidden (seed 1: 30 deg, p90 4.2 -> 47 deg), while it helps every other shape; and so does following
+        # frames below min_fitness (propagate.follows; 3 manual frames, seed 3: p90 2.72 -> 5.53 deg, frames 1-17
+        # 1-4 -> 2-15 deg off), while it kept the other shapes' chains on the object
+        chaining = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing=False),
+                                                                                 chain_follow_fitness=config.min_fitness))
         # its refinement's fitness counts all pairs, as its chains' does: counted on the facing pairs alone, a mug
         # held in the hand fell below min_fitness in 14 more frames (report mug, frames 10-23, 1.5-7 deg off),
         # which then left the carving, and the hand space only they see free stayed in the mesh (18 mm taller)
