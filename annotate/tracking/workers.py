@@ -214,11 +214,12 @@ def _abandon(pool: ProcessPoolExecutor | None, others: set) -> None:
     if pool is None:
         return
     pool.shutdown(wait=False, cancel_futures=True)
-    processes = [process for process in multiprocessing.active_children() if process not in others]
-    for process in processes:
-        process.terminate()
-    for process in processes:
-        process.join(5)
+    for _ in range(2):  # again for a worker the pool's manager thread started while the first ones ended
+        processes = [process for process in multiprocessing.active_children() if process not in others]
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(5)
 
 
 def counting(progress: Callable[[int, int], None] | None, total: int) -> Callable[[object, object], None] | None:
