@@ -214,7 +214,10 @@ def _abandon(pool: ProcessPoolExecutor | None, others: set) -> None:
     if pool is None:
         return
     pool.shutdown(wait=False, cancel_futures=True)
-    for _ in range(2):  # again for a worker the pool's manager thread started while the first ones ended
+    # two passes: a fresh clone's CI (2 cores) once still listed a worker after one pass (1 test of 445); whether it
+    # was started late or slow to end was not found. No other pool forks meanwhile (_forking), so only this pool's
+    # workers are new
+    for _ in range(2):
         processes = [process for process in multiprocessing.active_children() if process not in others]
         for process in processes:
             process.terminate()
