@@ -1,5 +1,5 @@
 """FrameStore crops: the points of a known wall inside a box, and repeated crops (kept ones) as the caller's own arrays;
-frames read ahead on threads (preload) as read one by one."""
+crops cut from a held wider crop; frames read ahead on threads (preload) as read one by one."""
 
 from __future__ import annotations
 
@@ -104,6 +104,47 @@ def test_a_batch_of_crops_equals_the_crops_one_by_one_on_worker_processes():
     again = store.crop("f19", poses[19], extents, 0.0, 0.004)
     np.testing.assert_array_equal(again[0], expected[19][0])
     assert store.sequence.reads == 20  # every frame read once, here (not on a worker): f0 before the batch, 19 in it
+
+
+def test_crops_inside_a_held_crop_are_cut_from_it_and_others_from_the_image():
+    """FrameStore.hold: a later voxelled crop whose box lies inside the held one is its voxels whose centre lies in the
+    box (the wall's 2 cm voxels: whole ones, the means of all their points); a box reaching outside it, a crop at
+    another voxel or at full resolution come from the image as without a held crop."""
+    from annotate.tracking.frames import HELD_MARGIN_M
+
+    extents, voxel = np.array([0.2, 0.1, 0.1]), 0.02
+    sequence = _WallSequence(1.0)
+    store = FrameStore(sequence, stride=2, colors=True)
+    plain = FrameStore(_WallSequence(1.0), stride=2, colors=True)  # no held crops: the image's crops
+    store.hold([("a", _box_pose(0.0)), ("b", _box_pose(0.3))], extents, voxel)
+    wide, wide_colors = plain.crop("a", _box_pose(0.0), extents, HELD_MARGIN_M, voxel)  # what "a" holds
+    assert np.allclose(wide[:, 2], 1.0)
+    image_crop = store._crop
+    store._crop = None  # a crop served from the held one touches no image: calling this would raise
+
+    # moved 1 cm, with a 1 cm margin: 2 cm of the held 4 cm used
+    points, colors = store.crop("a", _box_pose(0.01), extents, 0.01, voxel)
+    inside = (np.abs(wide[:, 0] - 0.01) <= 0.11) & (np.abs(wide[:, 1]) <= 0.06)
+    np.testing.assert_array_equal(points, wide[inside])
+    np.testing.assert_array_equal(colors, wide_colors[inside])
+    # the wall's voxels: 2 cm apart, so the box's 22 x 12 cm hold 11 x 6 of their centres, give or take one per side
+    assert 10 * 5 <= len(points) <= 12 * 7
+    # a model's batch of crops: the held frames cut, the same arrays as one by one
+    batch = store.crops([("a", _box_pose(0.01)), ("b", _box_pose(0.29))], extents, 0.01, voxel)
+    np.testing.assert_array_equal(batch[0][0], points)
+    assert np.all(np.abs(batch[1][0][:, 0] - 0.29) <= 0.11)
+
+    store._crop = image_crop
+    beyond = _box_pose(HELD_MARGIN_M + 0.001)  # its box's far end lies 1 mm outside the held one
+    for pose, margin, size in ((beyond, 0.0, voxel), (_box_pose(0.01), 0.0, 0.01), (_box_pose(0.01), 0.0, None)):
+        got, expected = store.crop("a", pose, extents, margin, size), plain.crop("a", pose, extents, margin, size)
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
+    # a batch with a frame held and one not: each as one by one
+    batch = store.crops([("a", _box_pose(0.01)), ("c", _box_pose(0.01))], extents, 0.01, voxel)
+    np.testing.assert_array_equal(batch[0][0], points)
+    np.testing.assert_array_equal(batch[1][0], plain.crop("c", _box_pose(0.01), extents, 0.01, voxel)[0])
+    assert sequence.reads == 3  # a, b and c, each once
 
 
 class _VariedSequence(_WallSequence):

@@ -119,6 +119,13 @@ Progress = Callable[[int, int], None]
 #: 24 frames 0.95-0.99 -> 0.97-1.14 s, 48 frames 2.39-2.56 -> 2.14-2.24 s; laptop 24 frames 2.96-3.14 -> 2.45-2.55 s).
 MIN_FRAMES_FOR_WORKERS = 40
 
+#: After the chains, a frame's crops are cut from one wider crop per frame (FrameStore.hold) where the box's two largest
+#: sides span at least this (m^2): a crop's cost grows with the pixels the box covers (a laptop's, 0.35 x 0.34 m, ~1.9 ms
+#: for 13,000 pixels; a mug's ~0.5 ms). Measured with held crops for every object (v5 seeds 0-3, the issue's setting):
+#: laptop seed 1 152 / 148 / 180 ms per frame against 167 / 176 / 185 (A B pairs), the other objects no faster, and
+#: the mugs' spin moved with their crops (seed 1's p90 2.83 -> 4.40 deg, seed 2's 2.34 -> 3.30).
+MIN_HELD_CROP_AREA_M2 = 0.05
+
 
 class _Steps:
     """Counts work units and reports (done, total) to an optional callback."""
@@ -475,6 +482,11 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # 5 mm / 8%): median / p90 rotation and median centre 1.24/3.77/1.60, 2.33/4.78/2.43, 1.23/6.09/2.27,
     # 1.26/3.09/3.21 -> 1.03/1.59/1.32, 1.41/4.78/2.08, 1.19/7.54/2.11, 1.28/2.08/2.88 (deg, deg, mm)
     chained = {f: r.pose for f, r in results.items()}
+    if float(np.prod(np.sort(tracker.box)[1:])) >= MIN_HELD_CROP_AREA_M2:
+        # from here on a frame is cropped at poses a few millimetres apart, many times: each once, a little wider,
+        # and then cut from that (FrameStore.hold)
+        for voxel in (config.voxel_size, config.voxel_size * config.coarse_voxel_factor)[: 2 if config.coarse_voxel_factor > 1 else 1]:
+            tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)
     if check_stretches:

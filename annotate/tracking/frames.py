@@ -16,6 +16,9 @@ from .workers import ordered_map
 
 #: a batch of crops forks workers only from this many crops to compute (a fork costs ~20 ms, a laptop crop 1-3 ms)
 MIN_FORKED_CROPS = 16
+#: a held crop (:meth:`FrameStore.hold`) reaches this far (m) beyond the box on each side: a later crop's box may move
+#: about this far less its own margin (a registration's 1 cm, the slide check's 3 cm) and still be cut from it
+HELD_MARGIN_M = 0.04
 
 
 class FrameStore:
@@ -26,6 +29,10 @@ class FrameStore:
     ``crop_cache`` crops are kept: the tracker crops the same frame at the same pose again (a
     model of the trusted poses is built twice between two pose updates, and the smoothing crops
     the frames its model was just built from; measured on a v5 laptop: 164 of 1414 crops).
+
+    Once the poses are roughly known, :meth:`hold` keeps a wider voxelled crop per frame, and the later voxelled
+    crops of that frame are cut from it: after the chains, a laptop frame is cropped some 15 more times at poses a
+    few millimetres apart (the refinement's rounds and restarts, the models, the rechecks, the slide check).
     """
 
     def __init__(self, sequence: Sequence, stride: int = 2, cache: bool = True, colors: bool = True, crop_cache: int = 256) -> None:
@@ -37,6 +44,8 @@ class FrameStore:
         self._frames: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         self._crops: OrderedDict[tuple, tuple[np.ndarray, np.ndarray | None]] = OrderedDict()
         self.errors: dict[str, str] = {}
+        # (frame, voxel, extents) -> the pose a crop was held at, its half sides (m) and its points and colours
+        self._held: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
 
     def image(self, frame_id: str) -> tuple[np.ndarray, np.ndarray | None]:
         """Subsampled depth (h, w) float32 metres (0 = none) and colours (h, w, 3) float32 0..1 or None."""
@@ -90,6 +99,10 @@ class FrameStore:
         is neither looked up nor kept (a one-off crop at full resolution, ten times a voxel crop's size, would push
         the registrations' crops out of the cache).
         """
+        if voxel and keep:
+            held = self._from_held(frame_id, pose, extents, margin, voxel)
+            if held is not None:
+                return held
         if self.crop_cache <= 0 or not keep:
             points, colors = self._crop(frame_id, pose, extents, margin, voxel)
             return points, (colors if colors is not None else np.zeros_like(points))
@@ -108,6 +121,16 @@ class FrameStore:
 
         A model of 60 frames is 60 crops (a laptop: 1-3 ms each) that need nothing of each other.
         """
+        held = [self._from_held(f, pose, extents, margin, voxel) if voxel else None for f, pose in requests]
+        rest = [i for i, h in enumerate(held) if h is None]
+        if rest:
+            for i, crop in zip(rest, self._image_crops([requests[i] for i in rest], extents, margin, voxel, workers)):
+                held[i] = crop
+        return held
+
+    def _image_crops(self, requests: list[tuple[str, np.ndarray]], extents: np.ndarray, margin: float, voxel: float | None,
+                     workers: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`crops` of requests that no held crop serves."""
         if not self.cache:
             workers = 1
         keys = [_crop_key(f, pose, extents, margin, voxel) for f, pose in requests]
@@ -131,6 +154,40 @@ class FrameStore:
                     self._crops.move_to_end(key)
             out.append(_owned(crop))
         return out
+
+    def hold(self, requests: list[tuple[str, np.ndarray]], extents: np.ndarray, voxel: float, workers: int = 1) -> None:
+        """Keep, for each (frame id, pose 4x4) of ``requests``, its crop by the box (full sides ``extents``, m) grown by
+        ``HELD_MARGIN_M`` at that pose, voxel-downsampled to ``voxel``, computed on up to ``workers`` processes.
+
+        Later crops of the frame at that voxel (:meth:`crop`, :meth:`crops`, with ``keep``) whose box (its margin
+        included) lies inside the held one are cut from it: its voxels whose centre lies in the box. They differ from a
+        crop of the image only along the box's faces: a voxel there is the mean of all its points, or left out, where
+        the image's crop averages only the points inside (a voxel-wide seam, where the background and a hand lie). A
+        frame held again replaces what was held.
+        """
+        half = np.asarray(extents, dtype=np.float64) / 2 + HELD_MARGIN_M
+        for frame_id, _ in requests:  # read here: a frame read on a worker, and its read error, would be lost to this process
+            self.image(frame_id)
+        if not self.cache:
+            workers = 1
+        held = ordered_map(lambda r: self._crop(r[0], r[1], extents, HELD_MARGIN_M, voxel), requests, workers if len(requests) >= MIN_FORKED_CROPS else 1)
+        for (frame_id, pose), (points, colors) in zip(requests, held):
+            self._held[_held_key(frame_id, extents, voxel)] = (np.array(pose, dtype=np.float64), half, points, colors)
+
+    def _from_held(self, frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The crop cut from the frame's held crop (:meth:`hold`; points, colours as :meth:`crop` returns them), or None
+        where none is held or the box grown by ``margin`` at ``pose`` reaches outside it."""
+        held = self._held.get(_held_key(frame_id, extents, voxel))
+        if held is None:
+            return None
+        at, reach, points, colors = held
+        half = np.asarray(extents, dtype=np.float64) / 2 + margin
+        corners = (np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)]) * 2 - 1) * half
+        if not np.all(np.abs(untransform(at, corners @ pose[:3, :3].T + pose[:3, 3])) <= reach):
+            return None
+        local = np.abs(untransform(pose, points))
+        inside = (local[:, 0] <= half[0]) & (local[:, 1] <= half[1]) & (local[:, 2] <= half[2])
+        return points[inside], (colors[inside] if colors is not None else np.zeros((int(np.count_nonzero(inside)), 3)))
 
     def _keep(self, key: tuple, crop: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.ndarray | None]:
         """Keep ``crop`` (points, colours or None) under ``key``, the least recently used crop dropped beyond
@@ -164,11 +221,18 @@ class FrameStore:
         near, far = max(corners[:, 2].min() - 1e-6, 1e-6), corners[:, 2].max() + 1e-6  # 1 um: rounding of the box test
         vv, uu = np.nonzero((patch >= near) & (patch <= far))
         z = patch[vv, uu].astype(np.float64)
-        points = np.stack([((uu + u0) * s - camera.cx) / camera.fx * z, ((vv + v0) * s - camera.cy) / camera.fy * z, z], axis=1)
-        local = np.abs(untransform(pose, points))
-        keep = (local[:, 0] <= half[0]) & (local[:, 1] <= half[1]) & (local[:, 2] <= half[2])
-        points = points[keep]
-        colors = color[v0:v1, u0:u1][vv[keep], uu[keep]].astype(np.float64) if color is not None else None
+        # back-projected per column and row once, then per pixel: the same values as per pixel throughout
+        x = ((np.arange(u0, u1) * s - camera.cx) / camera.fx)[uu] * z
+        y = ((np.arange(v0, v1) * s - camera.cy) / camera.fy)[vv] * z
+        # the box test one coordinate at a time, before any (N, 3) array: most of a laptop's rectangle is table
+        R, t = pose[:3, :3], pose[:3, 3]
+        dx, dy, dz = x - t[0], y - t[1], z - t[2]
+        keep = np.abs(dx * R[0, 0] + dy * R[1, 0] + dz * R[2, 0]) <= half[0]
+        keep &= np.abs(dx * R[0, 1] + dy * R[1, 1] + dz * R[2, 1]) <= half[1]
+        keep &= np.abs(dx * R[0, 2] + dy * R[1, 2] + dz * R[2, 2]) <= half[2]
+        kept = np.flatnonzero(keep)
+        points = np.stack([x[kept], y[kept], z[kept]], axis=1)
+        colors = color[v0 + vv[kept], u0 + uu[kept]].astype(np.float64) if color is not None else None
         if voxel and len(points):
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
             if colors is not None:
@@ -183,6 +247,11 @@ def _owned(crop: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.n
     """A kept crop's points and colours as the caller's own arrays (zeros for colours without colours)."""
     points, colors = crop
     return points.copy(), (colors.copy() if colors is not None else np.zeros_like(points))
+
+
+def _held_key(frame_id: str, extents: np.ndarray, voxel: float) -> tuple:
+    """The held crops' key: the frame, the box's sides to the last bit and the voxel."""
+    return (frame_id, np.asarray(extents, dtype=np.float64).tobytes(), float(voxel))
 
 
 def _crop_key(frame_id: str, pose: np.ndarray, extents: np.ndarray, margin: float, voxel: float | None) -> tuple:
