@@ -75,7 +75,9 @@ the document's in-box shares) on ``config.workers`` forked processes (workers.py
 Measured on 2 cores (v5, seeds 0-3): a laptop 164-175 -> 96-126 ms per frame, the other objects 27-65 (ranges
 under ``MIN_FRAMES_FOR_WORKERS`` frames, and the refinement of one frame, run on one process); the restarts, the
 crops, the matrices and the shares on the workers took laptop seed 2 from 18.7 to 15.5 s and seed 1 from 19.2 to
-17.9 s (whole process, medians of 5 alternating pairs, on a machine whose speed drifted by a third).
+17.9 s (whole process, medians of 5 alternating pairs, on a machine whose speed drifted by a third). After the
+chains, a large object's frames (a laptop's) are each cropped once, a little wider, and their later crops cut from
+that (FrameStore.hold; ``MIN_HELD_CROP_AREA_M2``): laptops seeds 0-3, 172 -> 146 ms per frame (8 A B pairs).
 """
 
 from __future__ import annotations
