@@ -211,6 +211,33 @@ def test_symmetry_axis_conditioning_tells_a_sphere_cap_from_a_cylinder():
     assert cylinder_conditioning < 0.1 and abs(axis[1]) > 0.999
 
 
+def test_axis_point_of_a_sphere_cap_with_its_direction_known():
+    """A shallow cap (a bowl's inside) leaves the axis direction free, but with the direction known the axis passes
+    through the sphere's centre: fit_axis_point finds it (independent truth: the centre the cap was made about),
+    also with a fifth of the points a hand's (a flat palm beside the cap) and ~1 deg of normal noise."""
+    from annotate.tracking.symmetry import fit_axis_point
+
+    rng = np.random.default_rng(1)
+    directions = rng.normal(size=(6000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    cap = directions[directions[:, 1] < -0.7]
+    centre = np.array([0.004, 0.02, -0.003])  # m: 5 mm off the box's y axis
+    normals = cap + rng.normal(scale=0.02, size=cap.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    palm = np.stack([rng.uniform(0.06, 0.12, 300), rng.uniform(-0.08, -0.02, 300), rng.uniform(-0.04, 0.04, 300)], axis=1)
+    points = np.concatenate([centre + 0.08 * cap, palm])
+    normals = np.concatenate([normals, np.tile([1.0, 0.0, 0.0], (300, 1))])
+    point, rms = fit_axis_point(points, normals, [0.0, 1.0, 0.0])
+    assert np.allclose(point, [centre[0], 0.0, centre[2]], atol=3e-4)  # the axis point nearest the origin: y = 0
+    # a tilted direction: the point nearest the origin of the line through the centre along it
+    tilted = np.array([0.1, 1.0, 0.05]) / np.linalg.norm([0.1, 1.0, 0.05])
+    point, _ = fit_axis_point(centre + 0.08 * cap, cap, tilted)
+    assert np.allclose(point, centre - tilted * (tilted @ centre), atol=1e-9)
+    assert rms >= 0
+    with pytest.raises(ValueError):
+        fit_axis_point(np.zeros((5, 3)), np.ones((5, 3)), [0.0, 1.0, 0.0])
+
+
 def test_symmetry_axis_rejects_too_few_points():
     with pytest.raises(ValueError):
         estimate_symmetry_axis(np.zeros((5, 3)))

@@ -76,6 +76,8 @@ class TrackingConfig:
     flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
     flat_cone_deg: float = 5.0  #: ... those within this of +-y
     min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals
+    flat_axis_centring: bool = True  #: ... and the box centre moved across y onto the symmetry axis along y (symmetry.fit_axis_point)
+    max_axis_shift_m: float = 0.01  #: ... by at most this (m; further means the fit is not the object's)
     frame_tilt: bool = True  #: ... and then every frame's tilt measured from its own normals near y (tilt.py)
     min_tilt_normals: int = 20  #: ... where at least this many of a frame's normals lie within flat_cone_deg of y
     max_frame_tilt_deg: float = 6.0  #: ... and they turn it at most this far

@@ -38,7 +38,8 @@
    set it); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
-   of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), and then each frame onto
+   of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), its centre moved across y
+   onto the axis the model's normal lines meet along that y (symmetry.fit_axis_point), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis), that centre moved square across onto the plane of the
@@ -108,7 +109,7 @@ from .refine import build_model, coarse_round, min_hits_for, recheck_disagreemen
 from .slide import against_the_motion, shifted, slide_corrections
 from .spin_window import windowed_spins
 from .stretch_spin import stretch_spins
-from .symmetry import fit_symmetry_axis, snap_upright
+from .symmetry import fit_axis_point, fit_symmetry_axis, snap_upright
 from .tilt import each_frame_untilted
 from .tracker import FrameResult, Tracker
 from .workers import ordered_map
@@ -239,6 +240,26 @@ def _snap_symmetric(tracker: Tracker, fit: _AxisFit | None) -> np.ndarray | None
     if fitted is None or np.linalg.norm(fitted[1]) > 0.25 * np.max(tracker.extents):
         return None
     return snap_upright(np.eye(4), *fitted)
+
+
+def _flat_axis_shift(tracker: Tracker, model: ObjectModel, flat: np.ndarray) -> np.ndarray | None:
+    """Correction (4x4, a translation across y) moving the box centre onto the symmetry axis along the box's y once
+    ``flat`` (4x4, a rotation about the centre: _snap_flat) turned ``model`` (object frame before it), or None where
+    the fit fails or moves it further than ``config.max_axis_shift_m`` (then the fit is not the object's)."""
+    config = tracker.config
+    target = model.target(min_hits_for(model, config))
+    turn = flat[:3, :3]
+    points = (target.points - flat[:3, 3]) @ turn  # the object frame after the snap: turn^T (p - t)
+    normals = np.asarray(target.cloud.normals) @ turn
+    try:
+        point, _ = fit_axis_point(points, normals, np.array([0.0, 1.0, 0.0]))
+    except ValueError:
+        return None
+    if np.linalg.norm(point) > config.max_axis_shift_m:
+        return None
+    shift = np.eye(4)
+    shift[:3, 3] = point  # its y is 0: the axis point nearest the centre
+    return shift
 
 
 def _rotation_snap(rotation: np.ndarray, config: TrackingConfig) -> np.ndarray | None:
@@ -567,6 +588,12 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             snap = flat = _snap_flat(tracker, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
+        if flat is not None and config.flat_axis_centring:
+            # ... and its centre onto the axis along that y: a sphere's normal lines all meet at its centre, so the
+            # direction they leave free, not the axis's place (symmetry.fit_axis_point)
+            shift = _flat_axis_shift(tracker, model, flat)
+            if shift is not None:
+                poses = {f: p @ shift for f, p in poses.items()}
         if flat is not None and config.frame_tilt:
             # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py)
             poses = each_frame_untilted(tracker, ids, poses)

@@ -27,6 +27,34 @@ def closest_about_y(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return rotation @ rotation_about_y(theta)
 
 
+def fit_axis_point(points: np.ndarray, normals: np.ndarray, axis, iterations: int = 5) -> tuple[np.ndarray, float]:
+    """The point (3,) nearest the origin of the symmetry axis whose direction ``axis`` (3,) is known, of a surface of
+    revolution sampled by ``points`` (N, 3) m with unit ``normals`` (N, 3), and the RMS residual (m) of the normal-line
+    test (see the module doc). :func:`fit_symmetry_axis` with the direction held: where the shape leaves the direction
+    free (a sphere's normal lines all meet at its centre), a known direction still fixes the line's place. The same
+    Cauchy reweighting shrugs off outliers (the hand). Raises ValueError with fewer than 20 finite points."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(normals), axis=1)
+    points, N = points[finite], normals[finite]
+    if len(points) < 20:
+        raise ValueError(f"too few points ({len(points)}) to place a symmetry axis")
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    centre = points.mean(axis=0)
+    Ma = np.cross(points - centre, N) @ a
+    w = np.ones(len(points))
+    for _ in range(iterations):
+        sw = np.sqrt(w)
+        moment = -np.linalg.lstsq(N * sw[:, None], Ma * sw, rcond=None)[0]
+        r = N @ moment + Ma
+        scale = 1.4826 * np.median(np.abs(r)) + 1e-6
+        w = 1.0 / (1.0 + (r / (2.0 * scale)) ** 2)
+    point = np.cross(a, moment) + centre
+    point = point - a * (a @ point)
+    return point, float(np.sqrt(np.mean((N @ moment + Ma) ** 2)))
+
+
 def estimate_symmetry_axis(
     points: np.ndarray,
     normals: np.ndarray | None = None,
