@@ -508,7 +508,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     if float(np.prod(np.sort(tracker.box)[1:])) >= MIN_HELD_CROP_AREA_M2:
         # from here on a frame is cropped at poses a few millimetres apart, many times: each once, a little wider,
         # and then cut from that (FrameStore.hold)
-        for voxel in (config.voxel_size, config.voxel_size * config.coarse_voxel_factor)[: 2 if config.coarse_voxel_factor > 1 else 1]:
+        coarse = [config.voxel_size * config.coarse_voxel_factor] if config.coarse_voxel_factor > 1 else []  # refine.coarse_round's
+        for voxel in [config.voxel_size, *coarse]:
             tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)

@@ -182,8 +182,7 @@ class FrameStore:
             return None
         at, reach, points, colors = held
         half = np.asarray(extents, dtype=np.float64) / 2 + margin
-        corners = (np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)]) * 2 - 1) * half
-        if not np.all(np.abs(untransform(at, corners @ pose[:3, :3].T + pose[:3, 3])) <= reach):
+        if not np.all(np.abs(untransform(at, _corners(pose, half))) <= reach):
             return None
         local = np.abs(untransform(pose, points))
         inside = (local[:, 0] <= half[0]) & (local[:, 1] <= half[1]) & (local[:, 2] <= half[2])
@@ -202,8 +201,7 @@ class FrameStore:
         depth, color = self.image(frame_id)
         camera, s = self.sequence.camera, self.stride
         half = np.asarray(extents, dtype=np.float64) / 2 + margin
-        corners = (np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)]) * 2 - 1) * half
-        corners = corners @ pose[:3, :3].T + pose[:3, 3]
+        corners = _corners(pose, half)
         empty = np.zeros((0, 3))
         if not np.all(np.isfinite(corners)) or np.all(corners[:, 2] <= 0):
             return empty, empty
@@ -247,6 +245,12 @@ def _owned(crop: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, np.n
     """A kept crop's points and colours as the caller's own arrays (zeros for colours without colours)."""
     points, colors = crop
     return points.copy(), (colors.copy() if colors is not None else np.zeros_like(points))
+
+
+def _corners(pose: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) m, camera frame, of the box with half sides ``half`` (3,) at ``pose`` (4x4 object to camera)."""
+    corners = (np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)]) * 2 - 1) * half
+    return corners @ pose[:3, :3].T + pose[:3, 3]
 
 
 def _held_key(frame_id: str, extents: np.ndarray, voxel: float) -> tuple:

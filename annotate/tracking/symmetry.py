@@ -47,12 +47,20 @@ def fit_axis_point(points: np.ndarray, normals: np.ndarray, axis, iterations: in
     for _ in range(iterations):
         sw = np.sqrt(w)
         moment = -np.linalg.lstsq(N * sw[:, None], Ma * sw, rcond=None)[0]
-        r = N @ moment + Ma
-        scale = 1.4826 * np.median(np.abs(r)) + 1e-6
-        w = 1.0 / (1.0 + (r / (2.0 * scale)) ** 2)
-    point = np.cross(a, moment) + centre
-    point = point - a * (a @ point)
-    return point, float(np.sqrt(np.mean((N @ moment + Ma) ** 2)))
+        w = _cauchy_weights(N @ moment + Ma)
+    return _nearest_axis_point(a, moment, centre), float(np.sqrt(np.mean((N @ moment + Ma) ** 2)))
+
+
+def _cauchy_weights(residuals: np.ndarray) -> np.ndarray:
+    """Cauchy weights (N,) of the normal-line residuals (N,) m, scaled by their robust spread (MAD)."""
+    scale = 1.4826 * np.median(np.abs(residuals)) + 1e-6
+    return 1.0 / (1.0 + (residuals / (2.0 * scale)) ** 2)
+
+
+def _nearest_axis_point(axis: np.ndarray, moment: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The point (3,) nearest the origin of the line with unit direction ``axis`` and moment ``moment`` about ``centre``."""
+    point = np.cross(axis, moment) + centre  # a x (c x a) = c for c perpendicular to a
+    return point - axis * (axis @ point)
 
 
 def estimate_symmetry_axis(
@@ -117,14 +125,10 @@ def fit_symmetry_axis(
         _, singular, vt = np.linalg.svd(A, full_matrices=False)
         axis = vt[-1]
         moment = -np.linalg.lstsq(N * sw, Mw @ axis, rcond=None)[0]
-        r = N @ moment + M @ axis  # metres: distance-like misfit of each normal line
-        scale = 1.4826 * np.median(np.abs(r)) + 1e-6
-        w = 1.0 / (1.0 + (r / (2.0 * scale)) ** 2)  # Cauchy weights
+        w = _cauchy_weights(N @ moment + M @ axis)  # the residuals: metres, a distance-like misfit of each normal line
     if axis @ np.asarray(initial_axis, dtype=np.float64) < 0:
         axis, moment = -axis, -moment
-    c = np.cross(axis, moment)  # a x (c x a) = c for c perpendicular to a
-    point = c + centre
-    point = point - axis * (axis @ point)  # closest point of the line to the origin
+    point = _nearest_axis_point(axis, moment, centre)
     rms = float(np.sqrt(np.mean((N @ moment + M @ axis) ** 2)))
     conditioning = float(singular[-1] / max(singular[-2], 1e-300))
     return axis, point, rms, conditioning
