@@ -78,7 +78,8 @@ under ``MIN_FRAMES_FOR_WORKERS`` frames, and the refinement of one frame, run on
 crops, the matrices and the shares on the workers took laptop seed 2 from 18.7 to 15.5 s and seed 1 from 19.2 to
 17.9 s (whole process, medians of 5 alternating pairs, on a machine whose speed drifted by a third). After the
 chains, a large object's frames (a laptop's) are each cropped once, a little wider, and their later crops cut from
-that (FrameStore.hold; ``MIN_HELD_CROP_AREA_M2``): laptops seeds 0-3, 172 -> 146 ms per frame (8 A B pairs).
+that (FrameStore.hold; ``LARGE_BODY_AREA_M2``): laptops seeds 0-3, 172 -> 146 ms per frame (8 A B pairs). Such a
+body gets ``config.large_body_rounds`` fine rounds (one), not ``global_rounds``.
 """
 
 from __future__ import annotations
@@ -122,12 +123,16 @@ Progress = Callable[[int, int], None]
 #: 24 frames 0.95-0.99 -> 0.97-1.14 s, 48 frames 2.39-2.56 -> 2.14-2.24 s; laptop 24 frames 2.96-3.14 -> 2.45-2.55 s).
 MIN_FRAMES_FOR_WORKERS = 40
 
-#: After the chains, a frame's crops are cut from one wider crop per frame (FrameStore.hold) where the box's two largest
-#: sides span at least this (m^2): a crop's cost grows with the pixels the box covers (a laptop's, 0.35 x 0.34 m, ~1.9 ms
-#: for 13,000 pixels; a mug's ~0.5 ms). Measured with held crops for every object (v5 seeds 0-3, the issue's setting):
-#: laptop seed 1 152 / 148 / 180 ms per frame against 167 / 176 / 185 (A B pairs), the other objects no faster, and
-#: the mugs' spin moved with their crops (seed 1's p90 2.83 -> 4.40 deg, seed 2's 2.34 -> 3.30).
-MIN_HELD_CROP_AREA_M2 = 0.05
+#: A large body: the box's two largest sides span at least this (m^2; a laptop, 0.35 x 0.34 m). After the chains, its
+#: frames' crops are cut from one wider crop per frame (FrameStore.hold): a crop's cost grows with the pixels the box
+#: covers (a laptop's ~1.9 ms for 13,000 pixels; a mug's ~0.5 ms). Measured with held crops for every object (v5 seeds
+#: 0-3, the issue's setting): laptop seed 1 152 / 148 / 180 ms per frame against 167 / 176 / 185 (A B pairs), the
+#: other objects no faster, and the mugs' spin moved with their crops (seed 1's p90 2.83 -> 4.40 deg, seed 2's 2.34 ->
+#: 3.30). And it gets ``config.large_body_rounds`` fine rounds: a laptop's second round turned its frames 0.04-0.09
+#: deg in the median (its first 0.10-0.19 deg, and 0.6-2.8 mm along the hinge, which the slide check and the centring
+#: take up); with one round, over the four settings (16 laptop runs) the centres summed 34.45 -> 33.44 mm and the
+#: failing checks 2 -> 1 (3 manual frames off by 5 deg, seed 1's centre 3.04 -> 2.85 mm).
+LARGE_BODY_AREA_M2 = 0.05
 
 
 class _Steps:
@@ -455,7 +460,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     position = {f: i for i, f in enumerate(ids)}
     a_idx = [position[m] for m in anchors]
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
-    rounds = config.global_rounds + (1 if config.coarse_voxel_factor > 1 else 0)
+    large = float(np.prod(np.sort(tracker.box)[1:])) >= LARGE_BODY_AREA_M2
+    fine_rounds = config.large_body_rounds if large else config.global_rounds
+    rounds = fine_rounds + (1 if config.coarse_voxel_factor > 1 else 0)
     # the checks after the joint refinement (the recheck of the frames whose chains disagreed, the slides) count a
     # frame's worth each: a laptop spent a third of its run in them with the bar already full
     check_stretches = nearly_round and config.stretch_spin_check
@@ -505,14 +512,14 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     # 5 mm / 8%): median / p90 rotation and median centre 1.24/3.77/1.60, 2.33/4.78/2.43, 1.23/6.09/2.27,
     # 1.26/3.09/3.21 -> 1.03/1.59/1.32, 1.41/4.78/2.08, 1.19/7.54/2.11, 1.28/2.08/2.88 (deg, deg, mm)
     chained = {f: r.pose for f, r in results.items()}
-    if float(np.prod(np.sort(tracker.box)[1:])) >= MIN_HELD_CROP_AREA_M2:
+    if large:
         # from here on a frame is cropped at poses a few millimetres apart, many times: each once, a little wider,
         # and then cut from that (FrameStore.hold)
         coarse = [config.voxel_size * config.coarse_voxel_factor] if config.coarse_voxel_factor > 1 else []  # refine.coarse_round's
         for voxel in [config.voxel_size, *coarse]:
             tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
-    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)
+    results = refine_all(tracker, results, fine_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)
     if check_stretches:
         # a stretch that came out of the chains turned about the axis fits its own copy of the handle in that model:
         # each block of frames against the model of the others (stretch_spin.py)
