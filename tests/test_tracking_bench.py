@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from bench_tracking import pose_changes, surface_samples  # noqa: E402
+from bench_tracking import pose_changes, repeated_timing, speed_summary, surface_samples  # noqa: E402
 
 
 def _record(poses: list[np.ndarray], flagged: list[bool]) -> dict:
@@ -76,3 +76,15 @@ def test_goal_failures_and_the_pooled_summary_count_the_checks():
     # 2 sequences, mean median 1.40, mean p90 3.45, worst 4.00, centre 2.00, 6 flagged, 2 unflagged, 4 checks failing
     assert mug.split() == ["mug", "2", "1.40", "3.45", "4.00", "2.00", "6", "2", "4"]
     assert summary.splitlines()[-1].endswith("goal checks failing 4")
+
+
+def test_repeated_runs_report_the_median_time_and_the_speed_line_names_the_slowest_sequence():
+    runs = [{"ms_per_frame_wall": w, "ms_per_frame_cpu": c} for w, c in ((210.0, 330.0), (140.0, 250.0), (150.0, 240.0))]
+    timing = repeated_timing(runs)
+    assert timing["ms_per_frame_wall"] == 150.0 and timing["ms_per_frame_cpu"] == 250.0
+    assert timing["ms_per_frame_wall_runs"] == [210.0, 140.0, 150.0]
+    rows = [{"category": "mug", "seed": 1, "ms_per_frame_wall": 90.0}, {"category": "laptop", "seed": 2, **timing},
+            {"category": "laptop", "seed": 3, "ms_per_frame_wall": 151.0}]
+    line = speed_summary(rows, repeat=3)
+    assert "met on 2 of 3 sequences" in line and "slowest laptop seed 3 at 151 ms" in line and "medians of 3 runs" in line
+    assert speed_summary([]) == "speed: no sequence run"
