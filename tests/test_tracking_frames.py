@@ -184,3 +184,48 @@ def test_frames_preloaded_on_threads_equal_frames_read_one_by_one():
     uncached = _VariedSequence(1.0)
     FrameStore(uncached, stride=2, cache=False).preload(ids, threads=2)
     assert uncached.reads == 0
+
+
+def test_a_model_of_frames_at_poses_seen_before_reuses_their_parts_and_is_the_same_bit_for_bit():
+    from annotate.tracking.config import TrackingConfig
+    from annotate.tracking.tracker import Tracker
+
+    def fresh() -> Tracker:
+        return Tracker(FrameStore(_WallSequence(1.0), stride=2, colors=True), np.array([0.2, 0.1, 0.1]), False, TrackingConfig(workers=1))
+
+    ids, poses = ["a", "b", "c"], [_box_pose(0.05), _box_pose(0.02), _box_pose(-0.01)]
+    tracker, plain = fresh(), fresh()
+    first, again, reference = tracker.new_model(), tracker.new_model(), plain.new_model()
+    tracker.add_frames_to_model(first, ids, poses)
+    crops = []
+    real = tracker.store.crops
+    tracker.store.crops = lambda requests, *a, **k: crops.append([f for f, _ in requests]) or real(requests, *a, **k)
+    # frame "b" at another pose (one ulp off in x) is cropped again; "a" and "c" at their poses are not
+    moved = poses[1].copy()
+    moved[0, 3] = np.nextafter(moved[0, 3], 1.0)
+    tracker.add_frames_to_model(again, ids, [poses[0], moved, poses[2]])
+    assert crops == [["b"]]
+    plain.add_frames_to_model(reference, ids, [poses[0], moved, poses[2]])  # no part kept before: all from the crops
+    assert len(again) > 0 and again.frames == reference.frames == 3
+    for name in ("keys", "sum_xyz", "sum_rgb", "sum_view", "count", "hits"):
+        assert np.array_equal(getattr(again, name), getattr(reference, name)), name
+    # a model with another grid (a coarser voxel) does not take these parts
+    coarse = Tracker(tracker.store, tracker.extents, False, TrackingConfig(workers=1, voxel_size=0.008))
+    crops.clear()
+    coarse.add_frames_to_model(coarse.new_model(), ids, poses)
+    assert crops == [ids]
+
+
+def test_the_kept_model_parts_stay_within_their_byte_budget(monkeypatch):
+    import annotate.tracking.tracker as tracking
+    from annotate.tracking.config import TrackingConfig
+
+    tracker = tracking.Tracker(FrameStore(_WallSequence(1.0), stride=2, colors=True), np.array([0.2, 0.1, 0.1]), False, TrackingConfig(workers=1))
+    ids, poses = ["a", "b", "c"], [_box_pose(0.05), _box_pose(0.02), _box_pose(-0.01)]
+    tracker.add_frames_to_model(tracker.new_model(), ids[:1], poses[:1])
+    one = tracking._nbytes(next(iter(tracker.store.model_parts.values())))
+    monkeypatch.setattr(tracking, "MODEL_PART_BYTES", 2 * one)
+    tracker.add_frames_to_model(tracker.new_model(), ids, poses)
+    kept = tracker.store.model_parts
+    assert list(k[0] for k in kept) == ["b", "c"]  # the least recently used ("a") dropped
+    assert sum(tracking._nbytes(p) for p in kept.values()) <= 2 * one

@@ -46,6 +46,8 @@ class FrameStore:
         self.errors: dict[str, str] = {}
         # (frame, voxel, extents) -> the pose a crop was held at, its half sides (m) and its points and colours
         self._held: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        # the last ``crop_cache`` frames' voxels as a model adds them (ObjectModel.frame_part; Tracker.add_frames_to_model)
+        self.model_parts: OrderedDict[tuple, tuple] = OrderedDict()
 
     def image(self, frame_id: str) -> tuple[np.ndarray, np.ndarray | None]:
         """Subsampled depth (h, w) float32 metres (0 = none) and colours (h, w, 3) float32 0..1 or None."""

@@ -66,10 +66,20 @@ class ObjectModel:
         """Add several frames at once, each (camera-frame points (N, 3), colours or None, pose 4x4 object to camera,
         weight): the same model as adding them one by one in that order, bit for bit, with one merge instead of one
         per frame (a model of 60 laptop frames merged 60 times its growing voxel list)."""
-        parts = []
-        for points, colors, pose, weight in frames:
-            points_obj, views = _object_frame(points, pose)
-            parts.append(self._frame_voxels(points_obj, colors, views, weight))
+        self.add_parts([self.frame_part(*frame) for frame in frames])
+
+    def frame_part(self, points_cam: np.ndarray, colors: np.ndarray | None, pose: np.ndarray, weight: int = 1) -> tuple:
+        """A frame's voxels in this model's grid (camera-frame points (N, 3) seen at ``pose``, 4x4 object to camera), to
+        add with :meth:`add_parts`: the same for any model of the same voxel size and box."""
+        points_obj, views = _object_frame(points_cam, pose)
+        return self._frame_voxels(points_obj, colors, views, weight)
+
+    def grid_key(self) -> tuple:
+        """What a frame's part depends on besides the frame: the voxel size and the box's half sides."""
+        return (self.voxel_size, None if self.half is None else self.half.tobytes())
+
+    def add_parts(self, parts: list[tuple]) -> None:
+        """Add frames' parts (:meth:`frame_part`, in frame order): as :meth:`add_frames` would add those frames."""
         self._merge(parts)
 
     def _frame_voxels(self, points_obj: np.ndarray, colors: np.ndarray | None = None, views: np.ndarray | None = None, weight: int = 1):
