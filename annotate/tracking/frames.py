@@ -46,7 +46,7 @@ class FrameStore:
         self.errors: dict[str, str] = {}
         # (frame, voxel, extents) -> the pose a crop was held at, its half sides (m) and its points and colours
         self._held: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
-        # the last ``crop_cache`` frames' voxels as a model adds them (ObjectModel.frame_part; Tracker.add_frames_to_model)
+        # frames' voxels as models added them, kept for models that take them again (Tracker.add_frames_to_model)
         self.model_parts: OrderedDict[tuple, tuple] = OrderedDict()
 
     def image(self, frame_id: str) -> tuple[np.ndarray, np.ndarray | None]:
