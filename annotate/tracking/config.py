@@ -118,6 +118,10 @@ class TrackingConfig:
         if not self.voxel_size > 0:
             raise ValueError("voxel_size must be positive")
 
+    def coarse_voxel(self) -> float | None:
+        """The coarse round's voxel (m; refine.coarse_round), or None where there is no coarse round."""
+        return self.voxel_size * self.coarse_voxel_factor if self.coarse_voxel_factor > 1 else None
+
     def worker_count(self) -> int:
         """Processes for independent work: one unless Open3D runs on one thread (a thread pool does not survive a fork)."""
         return resolve(self.workers) if self.threads == 1 else 1

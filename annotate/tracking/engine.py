@@ -462,7 +462,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
     large = float(np.prod(np.sort(tracker.box)[1:])) >= LARGE_BODY_AREA_M2
     fine_rounds = config.large_body_rounds if large else config.global_rounds
-    rounds = fine_rounds + (1 if config.coarse_voxel_factor > 1 else 0)
+    rounds = fine_rounds + (1 if config.coarse_voxel() is not None else 0)
     # the checks after the joint refinement (the recheck of the frames whose chains disagreed, the slides) count a
     # frame's worth each: a laptop spent a third of its run in them with the bar already full
     check_stretches = nearly_round and config.stretch_spin_check
@@ -515,8 +515,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     if large:
         # from here on a frame is cropped at poses a few millimetres apart, many times: each once, a little wider,
         # and then cut from that (FrameStore.hold)
-        coarse = [config.voxel_size * config.coarse_voxel_factor] if config.coarse_voxel_factor > 1 else []  # refine.coarse_round's
-        for voxel in [config.voxel_size, *coarse]:
+        for voxel in [v for v in (config.voxel_size, config.coarse_voxel()) if v is not None]:
             tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, fine_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)

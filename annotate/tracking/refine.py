@@ -295,15 +295,15 @@ def coarse_round(tracker: Tracker, results: dict[str, FrameResult], anchors: lis
     off unflagged with 3 frames off by up to 5 deg); the coarse round without the step limits: the same frame.
     """
     config = tracker.config
-    factor = config.coarse_voxel_factor
-    if factor <= 1:
+    voxel = config.coarse_voxel()
+    if voxel is None:
         return results
     reg = config.registration
     # the distances grow with the voxel (the model's points lie up to a coarse voxel apart), and no fit is
     # good enough for a move beyond the step limits
     coarse = replace(
         config,
-        voxel_size=config.voxel_size * factor,
+        voxel_size=voxel,
         registration=replace(reg, fine_distance=reg.fine_distance * 1.5, quality_distance=reg.quality_distance * 1.5, max_distance=max(reg.max_distance, 3 * reg.fine_distance)),
         max_refine_step_deg=config.coarse_step_deg,
         max_refine_step_m=config.coarse_step_m,
