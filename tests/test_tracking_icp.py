@@ -145,6 +145,28 @@ def test_nearest_model_points_follow_moving_points_exactly():
         assert np.allclose(d2, all_d2[inside, truth[inside]], rtol=1e-12, atol=0)
 
 
+def test_a_state_taken_over_for_every_kth_point_stays_exact():
+    """A fine stage's state that takes over a coarse stage's every k-th point (their candidates and bounds, at the
+    coarse stage's last positions) pairs every point with its nearest model point, as a fresh search does."""
+    rng = np.random.default_rng(5)
+    model = _object_points(2)
+    target = ModelTarget(model, voxel_size=0.003)
+    query = model[rng.choice(len(model), 900, replace=False)] + rng.normal(size=(900, 3)) * 0.004
+    coarse = icp.NearestModelPoints(target, query[::3], reach=0.015)
+    coarse.within(query[::3] + 0.001, 0.01)  # moved once: its positions and bounds are no longer the search's
+    moved = query + [0.0012, 0.0, -0.0005]
+    fine = icp.NearestModelPoints(target, moved, 0.006, coarse, np.arange(0, len(query), 3))
+    fresh = icp.NearestModelPoints(target, moved, 0.006)
+    for step in range(4):
+        moved = moved + rng.normal(size=3) * 0.001
+        got, want = fine.within(moved, 0.004), fresh.within(moved, 0.004)
+        for a, b in zip(got, want):
+            assert np.array_equal(a, b)
+    all_d2 = ((moved[:, None, :] - model[None, :, :]) ** 2).sum(axis=2)
+    truth = np.argmin(all_d2, axis=1)
+    assert np.array_equal(got[1], truth[got[0]])
+
+
 def test_identity_check_follows_eigen():
     T = np.eye(4)
     assert icp.is_identity(T)
@@ -154,13 +176,22 @@ def test_identity_check_follows_eigen():
     assert not icp.is_identity(T)
 
 
-def test_facing_for_some_points_equals_facing_for_all():
+def test_pairs_whose_model_surface_faces_away_from_the_camera_are_dropped():
+    """icp.correspondences with a camera keeps exactly the nearest pairs whose oriented model normal faces it."""
     model = _object_points(4)
     rng = np.random.default_rng(2)
     views = model - model.mean(axis=0)  # outward: seen from outside
     target = ModelTarget(model, voxel_size=0.003, views=views)
+    normals = np.asarray(target.cloud.normals)
+    assert target.oriented and np.all(np.einsum("ij,ij->i", normals, views) >= 0)
+    query = model[rng.choice(len(model), 700, replace=False)] + rng.normal(size=(700, 3)) * 0.002
+    rows, index, _ = icp.NearestModelPoints(target, query, 0.015).within(query, 0.01)
     for camera in (np.array([0.0, 0.0, 0.5]), np.array([0.3, -0.2, 0.1]), np.zeros(3)):
-        every = target.facing(camera)
-        index = rng.integers(0, len(model), 700)
-        assert np.array_equal(target.facing(camera, index), every[index])
-        assert np.array_equal(every, np.asarray(target.cloud.normals) @ camera > np.einsum("ij,ij->i", np.asarray(target.cloud.normals), model))
+        pairs, fitness, _ = icp.correspondences(icp.NearestModelPoints(target, query, 0.015), query, 0.01, camera)
+        faces = normals[index] @ camera > np.einsum("ij,ij->i", normals[index], model[index])
+        assert np.array_equal(pairs[:, 0], rows[faces]) and np.array_equal(pairs[:, 1], index[faces])
+        assert fitness == faces.sum() / len(query)
+    with pytest.raises(ValueError, match="not oriented"):
+        ModelTarget(model, voxel_size=0.003).facing_planes()
+
+

@@ -139,7 +139,7 @@ def extent_along(tracker: Tracker, frame_id: str, pose: np.ndarray, target: Mode
     local = untransform(pose, points)
     direction = np.asarray(direction, dtype=np.float64)
     along = local @ direction
-    distance, _ = target.tree().query(local, distance_upper_bound=ON_MODEL_VOXELS * tracker.config.voxel_size)
+    distance, _ = target.nearest(local, ON_MODEL_VOXELS * tracker.config.voxel_size)
     on_model = np.isfinite(distance)
     if np.count_nonzero(on_model) < MIN_SPAN_POINTS:
         return None

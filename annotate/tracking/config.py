@@ -23,7 +23,7 @@ class TrackingConfig:
     chain_follow_fitness: float = 0.2  #: a chain follows a frame below min_fitness down to this fitness (propagate.follows; >= min_fitness: off)
     chain_follow_step_deg: float = 5.0  #: ... where its registration turned it at most this far from where it started
     chain_follow_step_m: float = 0.01  #: ... and moved it at most this far (m)
-    model_refresh: int = 3  #: a chain's model target (normals, KD-tree) is rebuilt every this many frames
+    model_refresh: int = 3  #: a chain's model target (normals, search grid) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
     large_body_rounds: int = 1  #: ... for a large body (a laptop: engine.LARGE_BODY_AREA_M2), whose second round moved its frames 0.04-0.09 deg in the median and helped none (docs/tracking.md)
     coarse_voxel_factor: float = 2.0  #: ... after one round against a model this many times coarser (refine.coarse_round; <= 1: none)

@@ -1,11 +1,11 @@
-"""Point-to-plane ICP that reuses the target's KD-tree: Open3D's ``registration_icp``, step for step.
+"""Point-to-plane ICP that reuses the target's search structure: Open3D's ``registration_icp``, step for step.
 
 Open3D's ``registration_icp`` builds a KD-tree on the target at every call (twice per frame,
 coarse and fine), and tracking registers many frames against the same model (measured: v5
 laptop seed 0, 722 registrations against 51 models, 17,000 model points against 2,100 frame
 points; the tree builds were a third of the ICP time). This module runs the same loop with
-the model's KD-tree built once (:meth:`ModelTarget.tree`, scipy), and reproduces Open3D's
-result bit for bit (Open3D 0.20, one thread):
+the model's search grid built once (:meth:`ModelTarget.grid`: an exact k-nearest search,
+nearest_grid.py), and reproduces Open3D's result bit for bit (Open3D 0.20, one thread):
 
 - the transformed source cloud and the update (``compute_transformation``: the robust
   normal equations and their solve) are Open3D's own calls, on the same inputs;
@@ -15,9 +15,17 @@ result bit for bit (Open3D 0.20, one thread):
 - the accumulated transform ``update @ T`` sums its products in Eigen's order (k = 0..3);
 - the convergence test, fitness and inlier RMSE are Registration.cpp's.
 
-Only a tie between two model points at the same distance to a frame point could resolve
-otherwise (nanoflann keeps the first one found); model points are voxel centroids, so ties
-do not occur in practice. tests/test_tracking_icp.py checks the equality against Open3D.
+Only a tie, two model points at the same squared distance from a frame point to the last bit, can
+resolve otherwise: nanoflann keeps the first it finds, the grid the lower index. Ties are rare but
+real: one pair in the 505 registrations of a v5 camera (seed 1), whose run then drifted to other
+poses (96 frames within 1 deg and 1.3 mm; all of its goal checks pass either way), and none in the
+843 of laptop seed 1. tests/test_tracking_icp.py checks the equality against Open3D.
+
+The per-point loops (the bookkeeping of :class:`NearestModelPoints`, the pairs) are compiled
+(icp_kernels.py). Measured on the 843 registrations of a v5 laptop seed 1 run, replayed one after
+the other against the numpy code and scipy's KD-tree, the same results to the last bit: the loops
+compiled 0.58 of the time, and with the fine stage taking over the coarse stage's points 0.55; the
+grid's searches instead of the KD-tree's then 0.75-0.80 of that (cells of 3 voxels; 2: 0.84, 4: 0.82).
 
 The tracker's models also orient their normals (registration.py), and then, with
 ``RegistrationParams.facing`` (the default), a pair whose model normal faces away from the camera
@@ -32,7 +40,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import open3d as o3d
 
-from .sampling import every_kth
+from . import icp_kernels
+from .sampling import every_kth, every_kth_stride
 
 if TYPE_CHECKING:  # registration imports this module
     from .registration import ModelTarget, RegistrationParams
@@ -48,7 +57,7 @@ REACH = 1.5
 SETTLED_STEP_M = 1e-4
 SETTLED_STEP_RAD = 3e-4
 
-#: Model points kept per source point between KD-tree searches.
+#: Model points kept per source point between searches (3, 6 and 8 measured no faster with the grid).
 CANDIDATES = 4
 
 
@@ -72,7 +81,7 @@ _SLACK = 1e-9
 class NearestModelPoints:
     """Each source point's nearest model point, kept up to date as the source moves between ICP iterations.
 
-    A KD-tree query for every point at every iteration is most of ICP's time, while ICP moves the
+    A search for every point at every iteration is most of ICP's time, while ICP moves the
     points by a fraction of the model spacing per iteration. So each point keeps the ``CANDIDATES``
     model points found nearest to it by its last search (``len(target)`` where fewer were within
     ``reach``), the nearest of them (``best``), and two lower bounds (m): ``other``, on its distance
@@ -80,80 +89,55 @@ class NearestModelPoints:
     ``delta`` lowers both bounds by ``delta`` (triangle inequality). A point is settled, exactly,
     while ``best`` is nearer than both bounds, or while it and both bounds are beyond the cut (no
     model point within the cut). An unsettled point first checks all its candidates (renewing
-    ``best`` and ``other``), and only a point still unsettled goes back to the tree.
+    ``best`` and ``other``), and only a point still unsettled is searched again (the target's grid).
     """
 
-    def __init__(self, target: "ModelTarget", query: np.ndarray, reach: float) -> None:
+    def __init__(self, target: "ModelTarget", query: np.ndarray, reach: float, known: "NearestModelPoints | None" = None, rows: np.ndarray | None = None) -> None:
+        """The nearest model points of ``query`` (N, 3), searched within ``reach``; with ``known`` (a state of the
+        points ``query[rows]`` on the same target, at any positions), those rows take over its candidates and bounds
+        and only the others are searched (a fine stage after a coarse stage on every k-th of its points)."""
         self.target = target
         self.reach = float(reach)
-        # model coordinates one axis per array (gathers and arithmetic on (K, N) blocks run ~3x faster than on
-        # (N, K, 3)), with one far point appended, where a missing candidate points
-        self._model = [np.append(target.points[:, k], 1e6) for k in range(3)]
-        self.position = _columns(query)
-        n = len(query)
-        self.candidates = np.empty((CANDIDATES, n), dtype=np.int64)
+        # the model's points with one far point appended, where a missing candidate points
+        self._model = np.concatenate([target.points, np.full((1, 3), 1e6)])
+        self.position = np.array(query, dtype=np.float64, order="C").reshape(-1, 3)
+        n = len(self.position)
+        self.candidates = np.empty((n, CANDIDATES), dtype=np.int64)
         self.clear = np.empty(n)
         self.best = np.empty(n, dtype=np.int64)
         self.other = np.empty(n)
-        self._search(np.arange(n))
+        self._d2 = np.empty(n)
+        todo = np.ones(n, dtype=bool)
+        if known is not None:
+            # the bounds hold for the known positions: the next move (advance) starts from those
+            self.position[rows], self.candidates[rows], self.clear[rows] = known.position, known.candidates, known.clear
+            self.best[rows], self.other[rows], self._d2[rows] = known.best, known.other, known._d2
+            todo[rows] = False
+        self._search(np.flatnonzero(todo))
 
     def _search(self, rows: np.ndarray) -> None:
-        query = np.stack([c[rows] for c in self.position], axis=1)
-        distance, index = self.target.tree().query(query, k=CANDIDATES + 1, distance_upper_bound=self.reach)
-        self.candidates[:, rows] = index[:, :CANDIDATES].T
-        # the next neighbour bounds every non-candidate; with none within reach, reach does
-        self.clear[rows] = np.where(index[:, CANDIDATES] < len(self.target), distance[:, CANDIDATES], self.reach)
-        self._rank(rows)
-
-    def _squared(self, rows: np.ndarray | slice, index: np.ndarray) -> np.ndarray:
-        """Squared distances between the points ``rows`` and model points ``index`` (..., len(rows)), as nanoflann
-        sums them: x, y, z in order, no fused multiply-add."""
-        dx, dy, dz = (p[rows] - m[index] for p, m in zip(self.position, self._model))
-        return (dx * dx + dy * dy) + dz * dz
-
-    def _rank(self, rows: np.ndarray) -> np.ndarray:
-        """Renew ``best`` and ``other`` of ``rows`` from all their candidates; the squared distance to ``best``."""
-        candidates = self.candidates[:, rows]
-        d2 = self._squared(rows, candidates)
-        pick = np.arange(len(rows))
-        first = np.argmin(d2, axis=0)
-        nearest = d2[first, pick]
-        self.best[rows] = candidates[first, pick]
-        d2[first, pick] = np.inf
-        self.other[rows] = np.sqrt(d2.min(axis=0))
-        return nearest
+        distance, index = self.target.grid().query(self.position[rows], CANDIDATES + 1, self.reach)
+        icp_kernels.searched(rows, distance, index, len(self.target), self.reach, self.candidates, self.clear, self.position, self._model, self.best, self.other, self._d2)
 
     def within(self, query: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Move the points to ``query`` (N, 3); the rows whose nearest model point is at a squared distance
         strictly below ``distance``^2 (``distance`` <= ``reach``), their model indices and those squared distances."""
-        step = query - np.stack(self.position, axis=1)
-        moved = np.sqrt(np.einsum("ij,ij->i", step, step)) + _SLACK
-        self.clear -= moved
-        self.other -= moved
-        self.position = _columns(query)
-        d2 = self._squared(slice(None), self.best)
-        stale = np.flatnonzero(~_settled(d2, np.minimum(self.other, self.clear), distance))
-        if len(stale):
-            d2[stale] = self._rank(stale)
-            still = stale[~_settled(d2[stale], self.clear[stale], distance)]
-            if len(still):
-                self._search(still)
-                d2[still] = self._squared(still, self.best[still])
+        d2 = self.move_to(query, distance)
         keep = np.flatnonzero(d2 < distance * distance)
         return keep, self.best[keep], d2[keep]
 
+    def move_to(self, query: np.ndarray, distance: float) -> np.ndarray:
+        """Move the points to ``query`` (N, 3): every point's squared distance (N,) to its nearest model point
+        (``best``), exact where that lies within ``distance`` (<= ``reach``) of it. The array is the state's own."""
+        stale = icp_kernels.advance(np.ascontiguousarray(query, dtype=np.float64), float(distance), _SLACK, self.position, self.clear, self.other,
+                                    self.best, self.candidates, self._model, self._d2)
+        if len(stale):
+            self._search(stale)
+        return self._d2
 
-def _columns(points: np.ndarray) -> list[np.ndarray]:
-    """The x, y and z columns of ``points`` (N, 3) as three contiguous arrays."""
-    points = np.asarray(points, dtype=np.float64)
-    return [np.ascontiguousarray(points[:, k]) for k in range(3)]
 
-
-def _settled(d2: np.ndarray, bound: np.ndarray, distance: float) -> np.ndarray:
-    """Whether a point's kept nearest point (squared distance ``d2``) decides its correspondence, every other
-    model point lying at least ``bound`` away: it is nearer than all of them, or it and they are beyond the cut."""
-    bound = bound - _SLACK
-    return (np.sqrt(d2) < bound) | ((d2 >= distance * distance) & (bound >= distance))
+#: Slack (m) on the certificates: far above the rounding of distances under 1 m (~1e-16 m), far below model spacing.
+_SLACK = 1e-9
 
 
 def correspondences(nearest: NearestModelPoints, query: np.ndarray, distance: float, camera: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
@@ -164,20 +148,20 @@ def correspondences(nearest: NearestModelPoints, query: np.ndarray, distance: fl
     Returns the (K, 2) int32 pairs (source index, model index) in source order, the fitness
     K / N and the inlier RMSE (m) of those pairs.
     """
-    rows, index, d2 = nearest.within(query, distance)
-    if camera is not None and len(rows):
-        # a frame sees only surfaces that face its camera: a model point whose (oriented) surface faces away
-        # from the camera at this pose is the other side of a thin wall (a laptop's base seen from below,
-        # the model holding only its top), no partner for the frame point beside it
-        facing = nearest.target.facing(camera, index)
-        rows, index, d2 = rows[facing], index[facing], d2[facing]
-    if len(rows) == 0:
-        return np.zeros((0, 2), dtype=np.int32), 0.0, 0.0
-    pairs = np.empty((len(rows), 2), dtype=np.int32)
-    pairs[:, 0] = rows
-    pairs[:, 1] = index
-    error2 = float(np.add.accumulate(d2)[-1])  # sequential, in source order (not numpy's pairwise sum)
-    return pairs, len(rows) / len(query), float(np.sqrt(error2 / len(rows)))
+    d2 = nearest.move_to(query, distance)
+    # a frame sees only surfaces that face its camera: a model point whose (oriented) surface faces away from the
+    # camera at this pose is the other side of a thin wall (a laptop's base seen from below, the model holding only
+    # its top), no partner for the frame point beside it
+    normals, offsets = nearest.target.facing_planes() if camera is not None else (_NO_NORMALS, _NO_OFFSETS)
+    pairs, error2 = icp_kernels.pairs(d2, nearest.best, float(distance), camera is not None,
+                                     np.zeros(3) if camera is None else np.asarray(camera, dtype=np.float64), normals, offsets)
+    if len(pairs) == 0:
+        return pairs, 0.0, 0.0
+    return pairs, len(pairs) / len(query), float(np.sqrt(error2 / len(pairs)))
+
+
+#: Stand-ins for a target's planes where no pair is tested for facing.
+_NO_NORMALS, _NO_OFFSETS = np.zeros((1, 3)), np.zeros(1)
 
 
 def icp_stage(
@@ -191,16 +175,18 @@ def icp_stage(
     relative_fitness: float = 1e-5,
     relative_rmse: float = 1e-5,
     facing: bool = False,
+    carried: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, float, NearestModelPoints]:
     """One ``registration_icp`` call (Registration.cpp's RegistrationICP): transform, fitness, inlier RMSE (m),
-    and the nearest-point state (pass it to the next stage on the same source and target). With ``facing``
+    and the nearest-point state (pass it to the next stage on the same source and target; with ``carried``, the
+    rows of ``source`` that ``nearest``'s points are, the other points' state is searched afresh). With ``facing``
     (the target's normals oriented), only model points whose surface faces the camera pair (:func:`correspondences`)."""
     T = np.array(init, dtype=np.float64)
     pcd = o3d.geometry.PointCloud(source.points)  # Open3D copies the source; colours play no part here
     if not is_identity(T):
         pcd.transform(T)
-    if nearest is None:
-        nearest = NearestModelPoints(target, np.asarray(pcd.points), distance * REACH)
+    if nearest is None or carried is not None:
+        nearest = NearestModelPoints(target, np.asarray(pcd.points), distance * REACH, nearest, carried)
     pairs, fitness, rmse = correspondences(nearest, np.asarray(pcd.points), distance, T[:3, 3] if facing else None)
     for _ in range(max_iteration):
         update = np.asarray(estimation.compute_transformation(pcd, target.cloud, o3d.utility.Vector2iVector(pairs)))
@@ -238,12 +224,38 @@ def point_to_plane(source: o3d.geometry.PointCloud, target: "ModelTarget", init:
     for stage, distance in enumerate((params.max_distance, params.fine_distance)):
         estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max(params.kernel, distance / 2)))
         points = coarse if stage == 0 else source
-        if nearest is not None and (nearest.reach < distance or points is not previous):
-            nearest = None  # a wider stage than the last, or other points: search afresh
-        T, fitness, rmse, nearest = icp_stage(points, target, distance, T, estimation, params.iterations, nearest, facing=params.facing and target.oriented)
+        carried = None
+        if nearest is not None and nearest.reach < distance:
+            nearest = None  # a wider stage than the last: search afresh
+        elif nearest is not None and points is not previous:
+            # the coarse stage's points are every k-th of these: their state carries over, a third of the searches
+            carried = np.arange(0, len(points.points), every_kth_stride(len(points.points), params.coarse_points))
+        T, fitness, rmse, nearest = icp_stage(points, target, distance, T, estimation, params.iterations, nearest, facing=params.facing and target.oriented,
+                                              carried=carried)
         previous = points
     # column-major, as Open3D hands back its Eigen matrix: numpy's products on it then round as before
     return np.asfortranarray(T), fitness, rmse
+
+
+def load_kernels() -> None:
+    """Compile the compiled loops now, or load them from numba's cache (about 0.3 s), in this process: worker processes
+    forked after this inherit them, where each would otherwise load them again at its first registration (tracking
+    forks its workers anew for every map of frames)."""
+    global _kernels_loaded
+    if _kernels_loaded:
+        return
+    from .registration import ModelTarget, RegistrationParams
+
+    # a small plate seen from above, registered from 1 mm off: every loop runs, with the argument types of real use
+    grid = np.stack(np.meshgrid(np.arange(8), np.arange(8), [0.0]), axis=-1).reshape(-1, 3) * 0.003
+    target = ModelTarget(grid, voxel_size=0.003, views=np.tile([0.0, 0.0, 1.0], (len(grid), 1)))
+    init = np.eye(4)
+    init[:3, 3] = [0.001, 0.0, 0.3]
+    point_to_plane(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(grid + [0.0, 0.0, -0.3])), target, init, RegistrationParams())
+    _kernels_loaded = True
+
+
+_kernels_loaded = False
 
 
 def thinned(source: o3d.geometry.PointCloud, count: int) -> o3d.geometry.PointCloud:

@@ -150,10 +150,10 @@ class ObjectModel:
         return self._target
 
     def prepare(self, min_hits: int = 1) -> ModelTarget:
-        """The registration target (:meth:`target`) with its normals and KD-tree built now: before the work forks,
+        """The registration target (:meth:`target`) with its normals and search grid built now: before the work forks,
         so the workers inherit them instead of each building its own."""
         target = self.target(min_hits)
-        target.tree()
+        target.grid()
         return target
 
 

@@ -367,7 +367,7 @@ def _fitness_pair(tracker: Tracker, frame_id: str, pose_a: np.ndarray, pose_b: n
     out = []
     for pose in (pose_a, pose_b):
         local = untransform(pose, points)
-        d, _ = target.tree().query(local, distance_upper_bound=distance)
+        d, _ = target.nearest(local, distance)
         out.append(float(np.mean(np.isfinite(d))))
     return out[0], out[1]
 
@@ -564,7 +564,7 @@ def smooth_refined(
         points, _ = tracker.crop(frame_id, pose, margin=0.0)
         return registration_information(untransform(pose, points), target, config.registration.fine_distance, config.information_sigma)
 
-    target.tree()  # built here, before the work forks: the workers inherit it
+    target.grid()  # built here, before the work forks: the workers inherit it
     information = ordered_map(information_of, order, config.worker_count())
     priors = {}
     placed = {m: P for m, P in (placed or {}).items() if m in results and results[m].ok}

@@ -59,6 +59,9 @@ import open3d as o3d
 
 from . import icp
 
+#: The side of the ICP's search grid's cells, in model voxels (measured: icp.py's module doc).
+GRID_CELL_VOXELS = 3.0
+
 #: Below this many points on either side a registration is not attempted (too few to fix 6 DoF robustly).
 MIN_POINTS = 30
 
@@ -78,8 +81,9 @@ class RegistrationResult:
 class ModelTarget:
     """The registration target: model points (M, 3) in the object frame with normals and colours, built once.
 
-    Holds the Open3D cloud and, lazily, a scipy KD-tree of the points (point-to-plane ICP, :mod:`.icp`, and
-    smoothing query it: built once per target, where Open3D's ICP built one per call) and kiss-icp's voxel map.
+    Holds the Open3D cloud and, lazily, a search grid of the points (nearest_grid.CellGrid: the point-to-plane ICP,
+    :mod:`.icp`, and the fitness and information measures query it; built once per target, where Open3D's ICP built a
+    KD-tree per call) and kiss-icp's voxel map.
     """
 
     def __init__(self, points: np.ndarray, colors: np.ndarray | None = None, voxel_size: float = 0.003, views: np.ndarray | None = None) -> None:
@@ -107,28 +111,29 @@ class ModelTarget:
                 # a camera at c faces the surface at point q when n . c > n . q
                 self._normals, self._offsets = normals, np.einsum("ij,ij->i", normals, self.points)
         self._kiss_map = None
-        self._tree = None
+        self._grid = None
 
-    def facing(self, camera: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
-        """Per model point (M,), or per point of ``index`` (K,), whether its oriented surface faces a camera at
-        ``camera`` (3,), object frame, m (targets built with ``views`` only: :attr:`oriented`)."""
+    def facing_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The oriented normals (M, 3) and the offsets (M,) n . q of the model points' planes: a camera at c (object
+        frame) faces the surface at point q when n . c > n . q (targets built with ``views`` only: :attr:`oriented`)."""
         if not self.oriented:
             raise ValueError("the model's normals are not oriented: build the target with views")
-        camera = np.asarray(camera, dtype=np.float64)
-        if index is None:
-            normals, offsets = self._normals, self._offsets
-        else:  # an ICP iteration asks for its pairs' few thousand of the model's tens of thousands
-            normals, offsets = self._normals[index], self._offsets[index]
-        # the sum written out, in one order for all points: a matrix product's may differ by a last bit with the count
-        return (normals[:, 0] * camera[0] + normals[:, 1] * camera[1]) + normals[:, 2] * camera[2] > offsets
+        return self._normals, self._offsets
 
-    def tree(self):
-        """scipy's KD-tree of the model points, built once (smoothing queries every frame against one target)."""
-        if self._tree is None:
-            from scipy.spatial import cKDTree
+    def nearest(self, points: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per point (N, 3), object frame: the distance (N,) m to its nearest model point and that point's index (N,),
+        where one lies strictly within ``distance``; inf and ``len(self)`` where none does (scipy's KD-tree's answer)."""
+        found, index = self.grid().query(points, 1, distance)
+        return found[:, 0], index[:, 0]
 
-            self._tree = cKDTree(self.points)
-        return self._tree
+    def grid(self):
+        """The model points sorted into cells of ``GRID_CELL_VOXELS`` voxels (nearest_grid.CellGrid), built once: the
+        ICP's nearest-point searches."""
+        if self._grid is None:
+            from .nearest_grid import CellGrid
+
+            self._grid = CellGrid(self.points, GRID_CELL_VOXELS * self.voxel_size)
+        return self._grid
 
     def __len__(self) -> int:
         return len(self.points)
@@ -289,7 +294,7 @@ def register(
             icp_run = icp.point_to_plane if backend == "point_to_plane" else partial(_icp_open3d, backend)
             T, fitness, rmse = icp_run(source, target, init, params)
             if params.quality_distance == params.fine_distance and (params.facing_figures or not params.facing):
-                figures = (fitness, rmse)  # the ICP measured them at the final transform: no second KD-tree
+                figures = (fitness, rmse)  # the ICP measured them at the final transform: no second search
     except RuntimeError as error:  # Open3D raises on degenerate systems (e.g. colored ICP without enough texture)
         return fail(f"registration failed: {' '.join(str(error).split())}")
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):

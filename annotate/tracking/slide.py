@@ -75,7 +75,7 @@ def fitness_along(points_obj: np.ndarray, target: ModelTarget, direction: np.nda
     moves by ``s * direction`` (object frame), i.e. its points move by ``-s * direction`` in the object frame."""
     n = len(points_obj)
     moved = (points_obj[None, :, :] - shifts[:, None, None] * direction[None, None, :]).reshape(-1, 3)
-    d, _ = target.tree().query(moved, distance_upper_bound=distance)
+    d, _ = target.nearest(moved, distance)
     return np.isfinite(d).reshape(len(shifts), n).mean(axis=1)
 
 
@@ -116,7 +116,7 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
     if not config.slide_check or len(target) == 0:
         return {}
     distance = config.registration.quality_distance
-    target.tree()  # built once here, not in every worker (the normals are built with the target)
+    target.grid()  # built once here, not in every worker (the normals are built with the target)
 
     def slide(frame_id: str) -> np.ndarray | None:
         """The frame's object-frame shift (3,) m, or None."""

@@ -39,7 +39,7 @@ def registration_information(points_obj: np.ndarray, target: ModelTarget, distan
     points_obj = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
     if len(points_obj) == 0 or len(target) == 0 or not target.cloud.has_normals():
         return np.zeros((6, 6))
-    dist, index = target.tree().query(points_obj, distance_upper_bound=distance)
+    dist, index = target.nearest(points_obj, distance)
     near = np.isfinite(dist)
     p = points_obj[near]
     n = np.asarray(target.cloud.normals)[index[near]]

@@ -111,7 +111,7 @@ def _block_spin(tracker: Tracker, results: dict[str, FrameResult], order: list[s
         return None
     model = build_model(tracker, others, config.max_global_frames)
     hits = min_hits_for(model, config)
-    model.prepare(hits)  # the normals and KD-tree built once, before the workers fork
+    model.prepare(hits)  # the normals and search grid built once, before the workers fork
     frames = [f for f in order[b0 : b0 + block] if f in trusted]
     spins = []
     # the block's registrations need nothing of each other: on the workers (the same results as a loop)

@@ -3,7 +3,7 @@ kept for small batches that a sequential pass hands out one after another (TaskP
 
 Tracking's per-frame work is numpy on a few thousand points at a time, which holds the GIL: two threads
 measured 15-25 % more CPU for a 12 % shorter laptop run and slower small objects. Forked processes share
-the parent's state as it is at the fork (frames read, models and their KD-trees built) without pickling
+the parent's state as it is at the fork (frames read, models and their search grids built) without pickling
 it; only the items' indices go out and the results (poses, figures) come back. Each item runs the same
 code on the same inputs as in a loop, so the results are the same bit for bit whatever the count (measured:
 bench_tracking's pose dumps of the v5 sequences, seeds 0-3, with 4 manual frames and with 3 off by up to 5 deg,
