@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from .registration import BACKENDS, RegistrationParams
 from .workers import resolve
 
@@ -15,6 +17,7 @@ class TrackingConfig:
     backend: str = "point_to_plane"  #: one of registration.BACKENDS (chosen by benchmarks/bench_tracking.py)
     voxel_size: float = 0.004  #: model and frame downsampling (at least; large objects use max extent / voxels_across)
     voxels_across: int = 60  #: a large object gets a coarser voxel so its point count (and time) stays bounded
+    shallow_voxel_size: float = 0.003  #: a shallow body of symmetry y (a bowl: height under SHALLOW_RATIO of its width) starts from this voxel instead (docs/tracking.md; 0: voxel_size)
     max_points: int = 2500  #: a frame's points registered at most (every k-th beyond; 0: all)
     stride: int = 2  #: pixel subsampling when reading a frame's points
     crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
@@ -117,6 +120,8 @@ class TrackingConfig:
             raise ValueError(f"workers must be 0 (the cores available) or more, got {self.workers}")
         if not self.voxel_size > 0:
             raise ValueError("voxel_size must be positive")
+        if not self.shallow_voxel_size >= 0:
+            raise ValueError("shallow_voxel_size must be 0 (off) or positive")
 
     def coarse_voxel(self) -> float | None:
         """The coarse round's voxel (m; refine.coarse_round), or None where there is no coarse round."""
@@ -127,9 +132,22 @@ class TrackingConfig:
         return resolve(self.workers) if self.threads == 1 else 1
 
 
-def scaled_to(config: TrackingConfig, extents) -> TrackingConfig:
-    """The configuration with its voxel size grown for a large object (max extent / ``voxels_across``)."""
+#: A body of symmetry y whose box is less tall than this share of its width is shallow (a bowl: 0.24-0.33 on the v5
+#: bowls; cans and bottles 1.5-3.9).
+SHALLOW_RATIO = 0.5
+
+
+def scaled_to(config: TrackingConfig, extents, symmetric: bool = False) -> TrackingConfig:
+    """The configuration with its voxel size for an object of box ``extents`` (m; x, y, z): a shallow body of symmetry
+    y (``symmetric``) starts from ``shallow_voxel_size``, and a large object's grows to max extent / ``voxels_across``.
+
+    A bowl's thin rim and foot are what fix its axis: on 4 mm voxels its frames lost it where the hand covered the
+    bowl (measured, v5 bowls over the four settings: failing checks 4 -> 0 on 3 mm voxels; docs/tracking.md)."""
     from dataclasses import replace
 
-    voxel = max(config.voxel_size, float(max(extents)) / config.voxels_across)
+    extents = np.asarray(extents, dtype=np.float64).reshape(3)
+    voxel = config.voxel_size
+    if symmetric and config.shallow_voxel_size > 0 and extents[1] < SHALLOW_RATIO * max(extents[0], extents[2]):
+        voxel = config.shallow_voxel_size
+    voxel = max(voxel, float(extents.max()) / config.voxels_across)
     return replace(config, voxel_size=voxel) if voxel != config.voxel_size else config

@@ -429,7 +429,7 @@ def track_sequence(
     plus ``flag_reason`` where a figure is beyond the configured thresholds. Raises ValueError when
     the range holds no posed frame.
     """
-    config = scaled_to(config or TrackingConfig(), annotation.extents)
+    config = scaled_to(config or TrackingConfig(), annotation.extents, annotation.symmetry == "y")
     with open3d_threads(config.threads):
         return _track(sequence, annotation, frames, config, progress)
 
@@ -692,7 +692,7 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
     FramePose with ``source: refined`` and quality figures (and a flag) in ``extra``. Raises
     ValueError when the document has no pose to start from.
     """
-    config = scaled_to(config or TrackingConfig(), annotation.extents)
+    config = scaled_to(config or TrackingConfig(), annotation.extents, annotation.symmetry == "y")
     with open3d_threads(config.threads):
         return _refine_one(sequence, annotation, str(frame_id), config)
 
