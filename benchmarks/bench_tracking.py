@@ -308,12 +308,12 @@ def main() -> int:
                             (args.placement_sigma[0], args.placement_sigma[1] / 1000) if args.placement_sigma else None, args.facing)
                     for _ in range(args.repeat)]
             row, tracked, truth = runs[0]
+            ids = open_sequence(root).ids
+            record = pose_record(tracked, ids)
             if args.repeat > 1:
                 row.update(repeated_timing([r[0] for r in runs]))
-                first = pose_record(tracked, open_sequence(root).ids)
-                row["repeats_identical"] = all(pose_record(r[1], open_sequence(root).ids) == first for r in runs[1:])
+                row["repeats_identical"] = all(pose_record(r[1], ids) == record for r in runs[1:])
             if args.poses or args.compare_poses:
-                record = pose_record(tracked, open_sequence(root).ids)
                 name = f"{category}-s{seed}-{backend}.json"
                 if args.poses:
                     Path(args.poses).mkdir(parents=True, exist_ok=True)
