@@ -8,8 +8,8 @@ import numpy as np
 
 from evaluate.geometry import invert
 
-from .config import TrackingConfig
 from . import icp
+from .config import TrackingConfig
 from .frames import FrameStore
 from .model import ObjectModel
 from .quality import in_box_share
@@ -45,8 +45,8 @@ class Tracker:
         self.extents = np.asarray(extents, dtype=np.float64)
         # hand-placed extents are off by several percent: crop and judge with a slightly larger box
         self.box = self.extents * (1.0 + config.extents_slack)
-        if config.backend == "point_to_plane":
-            icp.load_kernels()  # before any worker forks: each would load them again
+        # before any worker forks, or each would load them again; every backend needs them (the models' searches)
+        icp.load_kernels()
 
     def new_model(self) -> ObjectModel:
         return ObjectModel(self.config.voxel_size, self.box, margin=self.config.voxel_size)
