@@ -136,3 +136,30 @@ def test_a_laptop_seen_from_above_and_from_below_is_turned_onto_its_own_faces_fr
         flat = frame_tilt(untransform(tracked[ids[0]], transform(truth, _seen_bowl(view / np.linalg.norm(view), voxel=voxel, category="laptop"))),
                           4 * voxel, CONE, MIN_NORMALS, MAX_DEG)
         assert flat is not None and abs(np.degrees(flat[1])) < 0.01  # only second-order terms of the turns about x and z
+
+
+def test_suspect_frames_measure_no_tilt():
+    # a frame far off its object (v5 unseen mug seed 5: frames 16-19 14 mm off) measures a tilt that is not the
+    # object's, and the window's median carried it to its trusted neighbours: the engine skips the suspect frames
+    from types import SimpleNamespace
+
+    from annotate.tracking.tilt import frame_tilts
+
+    tilt = Rotation.from_rotvec(np.radians([2.0, 0.0, 0.0])).as_matrix()
+    cropped = []
+    truth = np.eye(4)
+    truth[:3, 3] = [0.0, 0.0, 0.6]
+    pose = truth.copy()
+    pose[:3, :3] = tilt
+    seen = transform(truth, _seen_bowl(np.array([0.0, -0.6, 0.8]) / 1.0, seed=0))
+
+    def crop(frame_id, p, margin):
+        cropped.append(frame_id)
+        return seen, None
+
+    config = TrackingConfig(workers=1)
+    tracker = SimpleNamespace(config=config, crop=crop, store=SimpleNamespace(errors={}))
+    poses = {f"{i:07d}": pose for i in range(4)}
+    tilts = frame_tilts(tracker, poses, skip=frozenset({"0000001", "0000003"}))
+    assert cropped == ["0000000", "0000002"] and sorted(tilts) == ["0000000", "0000002"]
+    np.testing.assert_allclose(np.degrees(np.linalg.norm(tilts["0000000"])), 2.0, atol=0.5)  # one frame alone: 2.33 deg

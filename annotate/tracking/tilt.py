@@ -104,7 +104,7 @@ def frame_tilt(points_obj: np.ndarray, normal_radius: float, cone_deg: float, mi
     return turn if np.degrees(np.linalg.norm(turn)) <= max_deg else None
 
 
-def frame_tilts(tracker: Tracker, poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1) -> dict[str, np.ndarray]:
+def frame_tilts(tracker: Tracker, poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1, skip: frozenset = frozenset()) -> dict[str, np.ndarray]:
     """Per frame whose points measure it (:func:`frame_tilt`, with the tracker's configuration): its tilt (3,);
     ``hinged``: a laptop's whole rotation (the hinge's cone and plane). One crop and normal estimate per frame, on
     the tracker's workers; with ``every`` k > 1, only every k-th frame of ``poses`` (in its order) is measured."""
@@ -117,7 +117,7 @@ def frame_tilts(tracker: Tracker, poses: dict[str, np.ndarray], hinged: bool = F
         points, _ = tracker.crop(frame_id, pose, margin=0.0)
         return frame_tilt(untransform(pose, points), 4 * config.voxel_size, cone, config.min_tilt_normals, config.max_frame_tilt_deg, plane_deg=plane)
 
-    ids = [f for f in list(poses)[:: max(int(every), 1)] if f not in tracker.store.errors]
+    ids = [f for f in list(poses)[:: max(int(every), 1)] if f not in tracker.store.errors and f not in skip]
     return {f: tilt for f, tilt in zip(ids, ordered_map(measure, ids, config.worker_count())) if tilt is not None}
 
 
@@ -137,12 +137,13 @@ def windowed_tilts(ids: list[str], tilts: dict[str, np.ndarray], half_window: in
     return out
 
 
-def each_frame_untilted(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1) -> dict[str, np.ndarray]:
+def each_frame_untilted(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1,
+                        skip: frozenset = frozenset()) -> dict[str, np.ndarray]:
     """``poses`` (frame id -> 4x4, frames ``ids`` in order) each turned by the median of the tilts measured within
     ``tilt_window`` frames of it (:func:`frame_tilts`, :func:`windowed_tilts`, :func:`untilted`); a frame with fewer
     than ``min_tilt_frames`` measured near it keeps its pose."""
     config = tracker.config
-    tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=hinged, every=every), config.tilt_window, config.min_tilt_frames)
+    tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=hinged, every=every, skip=skip), config.tilt_window, config.min_tilt_frames)
     return {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
 
 

@@ -1,0 +1,180 @@
+"""A round body's frames (a mug's), each moved across its axis onto the axis of the model of all frames.
+
+Why: a mug's chains pair without the facing test (engine.py: with it they lost the spin where the handle was
+hidden), so a frame's outer wall pairs in part with the model's inner wall behind it, and its inner far wall with
+the outer wall behind that: each frame is pulled towards its camera (v5 mug seed 1, 3 manual frames: the chains left
+the frames 1.74 mm nearer their cameras, the median along their views; with the facing test 0.88 mm, but then the
+rotations failed elsewhere, below). Once the chains have done so, no later round undoes it (1.87 mm after the
+refinement): the model of all frames is then the mug with its wall thinned by twice the pull (every frame seen from
+outside, each shifted along its own view), and each frame fits that model as well as the truth (v5 mug seed 1, 3
+manual frames off by up to 3 deg: outer wall's radius 41.48 -> 39.91 mm, inner 37.41 -> 39.60 mm, a wall of 4.1 mm
+thinned to 0.3). Measured along each frame's view, the v5 mugs' frames (seeds 0-3 in the issue's setting, with 3
+manual frames off by up to 3 and 5 deg, and unseen seeds 4-7) sat 0.2-2.2 mm nearer their camera than the truth in
+15 of 16 runs (the median per run), and the data do not lean: the frames' points at their true poses lie within
+0.01 mm of the true mesh along the rays (median).
+
+A mug's body is a surface of revolution: the normal lines of its wall, outer and inner, all meet its axis. So each
+frame's own points place the axis in that frame's object frame (symmetry.fit_axis_point, the direction held at the
+box's y), from the wall alone: the handle (the points within ``handle_clear_deg`` of its direction about the axis),
+what lies off the wall (a hand's fingers, further than ``band_m`` from the body's radius), and the wall seen nearly
+edge-on (normals more than ``max_view_deg`` from the direction to the camera) are left out. The last matters: depth
+noise runs along the rays, which there run along the surface, and tilts those normals towards the camera, so that
+their lines meet nearer the camera than the axis (v5 mugs: 0.8-1.6 mm in 12 of 16 runs; within 60 deg, -0.4 to +0.2
+mm in 15; tests/test_tracking_axis_centring.py: 1.1 mm, and 0.02 mm within 60 deg). Each frame is moved by the median
+of the offsets measured within ``window`` frames of it, square to the axis, so that its axis lands on the
+reference's (the model of the trusted frames). The step runs before the common correction (engine step 5), which then
+moves all frames alike onto the placed boxes.
+
+Measured (bench_tracking, v5 mugs, HEAD before -> after, with the suspect frames' tilts left out, engine.py): box-centre
+medians summed over seeds 0-3, the issue's setting 6.85 -> 4.77 mm, 3 manual frames off by up to 3 deg 10.22 -> 7.28
+(seed 1 3.53 -> 1.80, the last check failing in the issue's own settings), off by up to 5 deg 9.68 -> 7.29 (seed 1
+3.29 -> 1.57), unseen seeds 4-7 5.88 -> 5.81; the frames' median lean along their views -0.2 to -2.2 mm -> -0.95 to
++0.55 mm; rotation medians summed over the 16 runs 16.66 -> 16.91 deg, p90s 82.3 -> 81.3 deg; failing mug checks 5 -> 3
+(3 manual frames off by 5 deg, seed 3's median and p90, which failed before; unseen seed 4's p90, all its frames
+flagged). Cost: a crop and normals per frame, 4-6 ms (mug seeds 1 and 2, 2 cores).
+
+Measured and not kept: the same without the view limit (the lean above left in): centres summed over the four
+settings 32.6 -> 31.9 mm, but unseen seeds 5 and 7 worse (1.10 -> 1.96, 1.16 -> 2.06 mm). The mugs' chains with the
+facing test instead: centres summed 32.6 -> 28.5 mm, but failing mug checks 5 -> 6 (p90s: the issue's setting seed 2
+2.34 -> 3.11 deg, unseen seed 7 2.68 -> 3.76 deg; 3 manual frames, seed 0's median 0.74 -> 1.73 deg).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import open3d as o3d
+
+from evaluate.geometry import untransform
+
+from .handle import handle_direction
+from .symmetry import fit_axis_point
+from .tracker import Tracker
+from .workers import ordered_map
+
+Y = np.array([0.0, 1.0, 0.0])
+
+
+class Body(NamedTuple):
+    """A round body in its object frame (m): a point of its axis (along y), its wall's radius, and the unit direction
+    (3,) of its handle square to the axis (None where none stands out)."""
+
+    point: np.ndarray
+    radius: float
+    handle: np.ndarray | None
+
+
+def wall_normals(points: np.ndarray, radius: float, camera: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) of ``points`` (N, 3) m, from up to 32 neighbours within ``radius`` m, turned towards
+    ``camera`` (3,; the same frame)."""
+    points = np.asarray(points, dtype=np.float64)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=32))
+    normals = np.asarray(cloud.normals)
+    # turned here, not by Open3D's orient_normals_towards_camera_location: that runs on all cores whatever Open3D's
+    # thread setting, and in a forked worker whose parent had run OpenMP on several threads it hung (the test suite)
+    return np.where((np.sum(normals * (np.asarray(camera, dtype=np.float64) - points), axis=1) < 0)[:, None], -normals, normals)
+
+
+def fit_body(points: np.ndarray, normals: np.ndarray) -> Body | None:
+    """The body of the model ``points`` (N, 3) with ``normals`` (N, 3), object frame (m), its axis along y: where the
+    normal lines meet, the median distance from there of the points whose normals lie across the axis (the wall),
+    and the handle's direction (handle.handle_direction); None with too few points."""
+    try:
+        point, _ = fit_axis_point(points, normals, Y)
+    except ValueError:
+        return None
+    across = np.abs(normals @ Y) < 0.5
+    radial = (points - point)[:, [0, 2]]
+    if across.sum() < 20:
+        return None
+    radius = float(np.median(np.linalg.norm(radial[across], axis=1)))
+    return Body(point, radius, handle_direction(points, Y, point))
+
+
+def wall(points: np.ndarray, normals: np.ndarray, body: Body, band_m: float, handle_clear_deg: float, height: float) -> np.ndarray:
+    """Mask (N,) of the points of the body's wall: normals across the axis (within 30 deg of square to it), within
+    ``band_m`` of the body's radius, more than ``handle_clear_deg`` from the handle's direction about the axis, and
+    within ``height`` / 2 less a margin of ``band_m`` of the axis point along it (the rim and foot curve away)."""
+    relative = points - body.point
+    radial = relative.copy()
+    radial[:, 1] = 0.0
+    distance = np.linalg.norm(radial, axis=1)
+    keep = (np.abs(normals @ Y) < np.sin(np.radians(30.0))) & (np.abs(distance - body.radius) < band_m)
+    keep &= np.abs(relative[:, 1]) < height / 2 - band_m
+    if body.handle is not None:
+        cosine = (radial @ body.handle) / np.maximum(distance, 1e-12)
+        keep &= cosine < np.cos(np.radians(handle_clear_deg))
+    return keep
+
+
+def frame_offset(points_obj: np.ndarray, camera: np.ndarray, body: Body, normal_radius: float, band_m: float, handle_clear_deg: float,
+                 height: float, min_points: int, max_view_deg: float) -> np.ndarray | None:
+    """Where a frame's own wall puts the axis, less where ``body`` has it: (3,) m, object frame, square to y; None
+    where fewer than ``min_points`` of its points ``points_obj`` (N, 3; object frame, m, seen from ``camera`` (3,))
+    lie on the wall and face the camera within ``max_view_deg``."""
+    if len(points_obj) < min_points:
+        return None
+    normals = wall_normals(points_obj, normal_radius, camera)
+    rays = points_obj - camera
+    facing = -np.sum(normals * rays, axis=1) / np.maximum(np.linalg.norm(rays, axis=1), 1e-12)
+    keep = wall(points_obj, normals, body, band_m, handle_clear_deg, height) & (facing > np.cos(np.radians(max_view_deg)))
+    if keep.sum() < min_points:
+        return None
+    try:
+        point, _ = fit_axis_point(points_obj[keep], normals[keep], Y)
+    except ValueError:
+        return None
+    offset = point - body.point
+    offset[1] = 0.0
+    return offset
+
+
+def windowed_offsets(ids: list[str], offsets: dict[str, np.ndarray], half_window: int, min_count: int) -> dict[str, np.ndarray]:
+    """Per frame of ``ids`` (in order) with at least ``min_count`` offsets measured within ``half_window`` frames of
+    it: their median (per component, m); other frames are absent."""
+    measured = np.full((len(ids), 3), np.nan)
+    for i, frame_id in enumerate(ids):
+        if frame_id in offsets:
+            measured[i] = offsets[frame_id]
+    out = {}
+    for i, frame_id in enumerate(ids):
+        window = measured[max(0, i - half_window) : i + half_window + 1]
+        window = window[np.isfinite(window[:, 0])]
+        if len(window) >= max(min_count, 1):
+            out[frame_id] = np.median(window, axis=0)
+    return out
+
+
+def shifted_onto_axis(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``pose`` (4x4, object to camera) with its object frame moved by ``offset`` (3,) m: a point the frame saw at
+    ``p`` (object frame) is then at ``p - offset``."""
+    out = np.array(pose, dtype=np.float64, copy=True)
+    out[:3, 3] += out[:3, :3] @ offset
+    return out
+
+
+def each_frame_on_axis(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], model_points: np.ndarray,
+                       model_normals: np.ndarray) -> dict[str, np.ndarray]:
+    """``poses`` (frame id -> 4x4, frames ``ids`` in order), each moved square to the box's y so that its wall's axis
+    lands on that of the model of all frames (``model_points``, ``model_normals``: (N, 3), the same object frame);
+    frames with too few wall points near them keep their pose, and so do all where the model gives no body."""
+    config = tracker.config
+    body = fit_body(model_points, model_normals)
+    if body is None:
+        return poses
+    height = float(tracker.extents[1])
+
+    def measure(frame_id: str) -> np.ndarray | None:
+        pose = poses[frame_id]
+        points, _ = tracker.crop(frame_id, pose, margin=0.0)
+        camera = untransform(pose, np.zeros((1, 3)))[0]
+        return frame_offset(untransform(pose, points), camera, body, 4 * config.voxel_size, config.axis_band_m, config.axis_handle_clear_deg,
+                            height, config.min_axis_points, config.axis_max_view_deg)
+
+    measured = [f for f in ids if f not in tracker.store.errors]
+    offsets = {f: o for f, o in zip(measured, ordered_map(measure, measured, config.worker_count())) if o is not None}
+    windowed = windowed_offsets(ids, offsets, config.axis_window, config.min_axis_frames)
+    limit = config.max_axis_offset_m
+    return {f: shifted_onto_axis(p, windowed[f]) if f in windowed and np.linalg.norm(windowed[f]) <= limit else p for f, p in poses.items()}
