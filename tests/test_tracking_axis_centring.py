@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from annotate.tracking.axis_centring import Body, fit_body, frame_offset, shifted_onto_axis, wall_normals, windowed_offsets
+from annotate.tracking.axis_centring import Body, fit_body, frame_offset, shifted_onto_axis, wall_normals
+from annotate.tracking.tilt import windowed_medians
 from evaluate.geometry import transform, untransform
 from sequences.synth.shapes import procedural_mesh
 
@@ -110,7 +111,7 @@ def test_too_few_wall_points_measure_nothing():
 def test_each_frame_takes_the_median_of_the_offsets_measured_near_it():
     ids = [f"{i:07d}" for i in range(7)]
     offsets = {ids[0]: np.array([1.0, 0, 0]), ids[1]: np.array([2.0, 0, 0]), ids[2]: np.array([9.0, 0, 0]), ids[5]: np.array([4.0, 0, 1])}
-    window = windowed_offsets(ids, offsets, 1, 2)
+    window = windowed_medians(ids, offsets, 1, 2)
     np.testing.assert_allclose(window[ids[0]], [1.5, 0, 0])
     np.testing.assert_allclose(window[ids[1]], [2.0, 0, 0])  # the median of 1, 2 and 9
     np.testing.assert_allclose(window[ids[2]], [5.5, 0, 0])

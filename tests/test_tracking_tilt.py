@@ -9,7 +9,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from annotate.tracking import TrackingConfig
-from annotate.tracking.tilt import frame_tilt, untilted, windowed_tilts
+from annotate.tracking.tilt import frame_tilt, untilted, windowed_medians
 from evaluate.geometry import transform, untransform
 from sequences.synth.shapes import procedural_mesh
 
@@ -51,7 +51,7 @@ def test_a_stretch_of_tilted_frames_of_a_bowl_is_set_upright():
         if measured is not None:
             tilts[frame_id] = measured
     assert len(tilts) >= 10
-    window = windowed_tilts(ids, tilts, 6, 3)
+    window = windowed_medians(ids, tilts, 6, 3)
     errors = [_y_angle_deg(untilted(tracked[f], window[f]), truths[f]) for f in ids]
     # each frame 2.5 deg off before; measured after: at most 0.09 deg (one frame alone: 0.02-0.34 deg)
     assert max(errors) < 0.3
@@ -91,15 +91,15 @@ def test_only_a_shape_that_leaves_its_axis_undetermined_takes_the_flat_faces():
 def test_each_frame_takes_the_median_of_the_tilts_measured_near_it():
     ids = [f"{i:07d}" for i in range(10)]
     tilts = {ids[0]: np.array([0.01, 0.0, 0.0]), ids[1]: np.array([0.03, 0.0, -0.01]), ids[2]: np.array([0.02, 0.0, 0.05])}
-    out = windowed_tilts(ids, tilts, 2)
+    out = windowed_medians(ids, tilts, 2)
     np.testing.assert_allclose(out[ids[0]], [0.02, 0.0, -0.0])  # frames 0-2
     np.testing.assert_allclose(out[ids[1]], [0.02, 0.0, 0.0])  # frames 0-2 (3 is unmeasured)
     np.testing.assert_allclose(out[ids[3]], [0.025, 0.0, 0.02])  # frames 1-2
     np.testing.assert_allclose(out[ids[4]], [0.02, 0.0, 0.05])  # frame 2 only
     assert ids[5] not in out and ids[9] not in out  # nothing measured within 2 frames: the pose keeps its tilt
-    assert windowed_tilts(ids, {}, 3) == {}
+    assert windowed_medians(ids, {}, 3) == {}
     # with at least 2 measured in the window: frame 4 (frame 2 alone) keeps its tilt
-    assert ids[4] not in windowed_tilts(ids, tilts, 2, 2) and ids[3] in windowed_tilts(ids, tilts, 2, 2)
+    assert ids[4] not in windowed_medians(ids, tilts, 2, 2) and ids[3] in windowed_medians(ids, tilts, 2, 2)
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -127,7 +127,7 @@ def test_a_laptop_seen_from_above_and_from_below_is_turned_onto_its_own_faces_fr
             if measured is not None:
                 tilts[frame_id] = measured
         assert len(tilts) == len(ids), name
-        window = windowed_tilts(ids, tilts, 6, 3)
+        window = windowed_medians(ids, tilts, 6, 3)
         errors = [_angle_deg(untilted(tracked[f], window[f]), truth) for f in ids]
         # 1.1-1.3 deg off before (the window: the same error in every frame); measured after: 0.10 (above) and 0.06 deg (below)
         assert min(_angle_deg(p, truth) for p in tracked.values()) > 1.0

@@ -50,6 +50,7 @@ from evaluate.geometry import untransform
 
 from .handle import handle_direction
 from .symmetry import fit_axis_point
+from .tilt import windowed_medians
 from .tracker import Tracker
 from .workers import ordered_map
 
@@ -131,22 +132,6 @@ def frame_offset(points_obj: np.ndarray, camera: np.ndarray, body: Body, normal_
     return offset
 
 
-def windowed_offsets(ids: list[str], offsets: dict[str, np.ndarray], half_window: int, min_count: int) -> dict[str, np.ndarray]:
-    """Per frame of ``ids`` (in order) with at least ``min_count`` offsets measured within ``half_window`` frames of
-    it: their median (per component, m); other frames are absent."""
-    measured = np.full((len(ids), 3), np.nan)
-    for i, frame_id in enumerate(ids):
-        if frame_id in offsets:
-            measured[i] = offsets[frame_id]
-    out = {}
-    for i, frame_id in enumerate(ids):
-        window = measured[max(0, i - half_window) : i + half_window + 1]
-        window = window[np.isfinite(window[:, 0])]
-        if len(window) >= max(min_count, 1):
-            out[frame_id] = np.median(window, axis=0)
-    return out
-
-
 def shifted_onto_axis(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """``pose`` (4x4, object to camera) with its object frame moved by ``offset`` (3,) m: a point the frame saw at
     ``p`` (object frame) is then at ``p - offset``."""
@@ -175,6 +160,6 @@ def each_frame_on_axis(tracker: Tracker, ids: list[str], poses: dict[str, np.nda
 
     measured = [f for f in ids if f not in tracker.store.errors]
     offsets = {f: o for f, o in zip(measured, ordered_map(measure, measured, config.worker_count())) if o is not None}
-    windowed = windowed_offsets(ids, offsets, config.axis_window, config.min_axis_frames)
+    windowed = windowed_medians(ids, offsets, config.axis_window, config.min_axis_frames)
     limit = config.max_axis_offset_m
     return {f: shifted_onto_axis(p, windowed[f]) if f in windowed and np.linalg.norm(windowed[f]) <= limit else p for f, p in poses.items()}

@@ -121,16 +121,17 @@ def frame_tilts(tracker: Tracker, poses: dict[str, np.ndarray], hinged: bool = F
     return {f: tilt for f, tilt in zip(ids, ordered_map(measure, ids, config.worker_count())) if tilt is not None}
 
 
-def windowed_tilts(ids: list[str], tilts: dict[str, np.ndarray], half_window: int, min_count: int = 1) -> dict[str, np.ndarray]:
-    """Per frame of ``ids`` (in order) with at least ``min_count`` measured tilts within ``half_window`` frames:
-    the median (per component) of those tilts (3,; rad). Other frames keep their tilt (absent from the result)."""
-    measured = np.full((len(ids), 3), np.nan)
+def windowed_medians(ids: list[str], measured: dict[str, np.ndarray], half_window: int, min_count: int = 1) -> dict[str, np.ndarray]:
+    """Per frame of ``ids`` (in order) with at least ``min_count`` measurements (``measured``: frame id -> (3,), a
+    tilt in rad or an offset in m) within ``half_window`` frames: the median (per component) of those. Other frames
+    are absent from the result (they keep their pose)."""
+    values = np.full((len(ids), 3), np.nan)
     for i, frame_id in enumerate(ids):
-        if frame_id in tilts:
-            measured[i] = tilts[frame_id]
+        if frame_id in measured:
+            values[i] = measured[frame_id]
     out = {}
     for i, frame_id in enumerate(ids):
-        window = measured[max(0, i - half_window) : i + half_window + 1]
+        window = values[max(0, i - half_window) : i + half_window + 1]
         window = window[np.isfinite(window[:, 0])]
         if len(window) >= max(min_count, 1):
             out[frame_id] = np.median(window, axis=0)
@@ -140,10 +141,10 @@ def windowed_tilts(ids: list[str], tilts: dict[str, np.ndarray], half_window: in
 def each_frame_untilted(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1,
                         skip: frozenset = frozenset()) -> dict[str, np.ndarray]:
     """``poses`` (frame id -> 4x4, frames ``ids`` in order) each turned by the median of the tilts measured within
-    ``tilt_window`` frames of it (:func:`frame_tilts`, :func:`windowed_tilts`, :func:`untilted`); a frame with fewer
+    ``tilt_window`` frames of it (:func:`frame_tilts`, :func:`windowed_medians`, :func:`untilted`); a frame with fewer
     than ``min_tilt_frames`` measured near it keeps its pose."""
     config = tracker.config
-    tilts = windowed_tilts(ids, frame_tilts(tracker, poses, hinged=hinged, every=every, skip=skip), config.tilt_window, config.min_tilt_frames)
+    tilts = windowed_medians(ids, frame_tilts(tracker, poses, hinged=hinged, every=every, skip=skip), config.tilt_window, config.min_tilt_frames)
     return {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
 
 
