@@ -208,3 +208,22 @@ def test_a_task_pool_whose_worker_dies_raises_and_frees_the_lock():
             pool.map([(3,), (4,)])
     assert workers._job is None
     assert workers.ordered_map(lambda k: k + 1, range(3), 2) == [1, 2, 3]
+
+
+@needs_fork
+def test_workers_run_open3d_on_one_thread_whatever_the_callers_setting():
+    # neither OpenMP nor TBB survives a fork: a worker forked from a process on two Open3D threads hung in TBB's
+    # reduction of the ICP's normal equations (the test suite, twice on 2026-11-28)
+    import open3d as o3d
+
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(2)
+    try:
+        seen = workers.ordered_map(lambda _: (os.getpid(), o3d.utility.get_max_threads()), range(4), 2)
+        assert {threads for _, threads in seen} == {1} and any(pid != os.getpid() for pid, _ in seen)
+        assert o3d.utility.get_max_threads() == 2  # the caller's setting back afterwards
+        with workers.TaskPool(lambda _: o3d.utility.get_max_threads(), 2) as pool:
+            assert pool.map([(0,), (1,)]) == [1, 1]
+        assert o3d.utility.get_max_threads() == 2
+    finally:
+        o3d.utility.set_max_threads(before)

@@ -13,7 +13,10 @@ frame registered 30 times from the same start gave 25 different last bits).
 
 Forking needs Linux (elsewhere, or with one worker, the map is a plain loop), and Open3D on one thread in the
 parent (the engine's default, ``TrackingConfig.threads``; ``TrackingConfig.worker_count``): the workers inherit
-the setting, and OpenMP does not promise that a thread pool survives a fork (Open3D's did on this machine).
+the setting, and neither OpenMP nor TBB promises that a thread pool survives a fork. So a map or a pool holds
+Open3D on one thread while its workers live (registration.open3d_threads), whoever calls it: a worker forked from a
+process that had run Open3D on two threads (a test calling the refinement directly) hung in TBB's reduction of the
+ICP's normal equations, waiting for a thread it does not have (2 of 3 runs of the test suite on 2026-11-28).
 """
 
 from __future__ import annotations
@@ -109,6 +112,8 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
     # the children alive before the pool: the pool's workers are the ones that come after (multiprocessing's public
     # record of a process's children; no other map forks meanwhile, _forking is held)
     others = set(multiprocessing.active_children())
+    single = _one_thread()
+    single.__enter__()
     try:
         try:
             pool = _new_pool(count)
@@ -133,7 +138,15 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
         return out
     finally:
         _job = None
+        single.__exit__(None, None, None)
         _forking.release()
+
+
+def _one_thread():
+    """Open3D held on one thread (registration.open3d_threads) while forked workers live: see the module doc."""
+    from .registration import open3d_threads  # registration's modules need not load for a plain map
+
+    return open3d_threads(1)
 
 
 def _call_with(args: tuple):
@@ -166,6 +179,8 @@ class TaskPool:
             self._held = True
             _job = (self.function, None)
             self._others = set(multiprocessing.active_children())
+            self._single = _one_thread()
+            self._single.__enter__()
             try:
                 self._pool = _new_pool(self.workers)
             except OSError:
@@ -203,6 +218,7 @@ class TaskPool:
             self._pool = None
             if self._held:
                 _job = None
+                self._single.__exit__(None, None, None)
                 _forking.release()
                 self._held = False
 
