@@ -107,7 +107,8 @@ def frame_tilt(points_obj: np.ndarray, normal_radius: float, cone_deg: float, mi
 def frame_tilts(tracker: Tracker, poses: dict[str, np.ndarray], hinged: bool = False, every: int = 1, skip: frozenset = frozenset()) -> dict[str, np.ndarray]:
     """Per frame whose points measure it (:func:`frame_tilt`, with the tracker's configuration): its tilt (3,);
     ``hinged``: a laptop's whole rotation (the hinge's cone and plane). One crop and normal estimate per frame, on
-    the tracker's workers; with ``every`` k > 1, only every k-th frame of ``poses`` (in its order) is measured."""
+    the tracker's workers; with ``every`` k > 1, only every k-th frame of ``poses`` (in its order) is measured, and
+    never the frames in ``skip`` (suspect ones: a frame far off its object measures a tilt that is not the object's)."""
     config = tracker.config
     plane = config.hinge_plane_deg if hinged else None
     cone = config.hinge_cone_deg if hinged else config.flat_cone_deg
@@ -142,7 +143,7 @@ def each_frame_untilted(tracker: Tracker, ids: list[str], poses: dict[str, np.nd
                         skip: frozenset = frozenset()) -> dict[str, np.ndarray]:
     """``poses`` (frame id -> 4x4, frames ``ids`` in order) each turned by the median of the tilts measured within
     ``tilt_window`` frames of it (:func:`frame_tilts`, :func:`windowed_medians`, :func:`untilted`); a frame with fewer
-    than ``min_tilt_frames`` measured near it keeps its pose."""
+    than ``min_tilt_frames`` measured near it keeps its pose; the frames in ``skip`` are turned but measure nothing."""
     config = tracker.config
     tilts = windowed_medians(ids, frame_tilts(tracker, poses, hinged=hinged, every=every, skip=skip), config.tilt_window, config.min_tilt_frames)
     return {f: untilted(p, tilts[f]) if f in tilts else p for f, p in poses.items()}
