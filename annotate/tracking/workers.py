@@ -28,7 +28,7 @@ import os
 import sys
 import threading
 import warnings
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 Item = TypeVar("Item")
@@ -112,33 +112,31 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
     # the children alive before the pool: the pool's workers are the ones that come after (multiprocessing's public
     # record of a process's children; no other map forks meanwhile, _forking is held)
     others = set(multiprocessing.active_children())
-    single = _one_thread()
-    single.__enter__()
     try:
-        try:
-            pool = _new_pool(count)
-            with _quiet_fork():
-                results = pool.map(_call, range(len(items)))  # submits every item: the workers are forked here
-        except OSError:  # a fork refused (memory, process slots): end those already forked, and do the work here
-            _abandon(pool, others)
-            return _loop(function, items, done)
-        try:
-            out = []
-            for item, result in zip(items, results):
-                out.append(result)
-                if done is not None:
-                    done(item, result)
-        except BrokenProcessPool as error:
-            _abandon(pool, others)
-            raise WorkerDied(_DIED) from error
-        except BaseException:
-            _abandon(pool, others)
-            raise
-        pool.shutdown()
-        return out
+        with _one_thread():
+            try:
+                pool = _new_pool(count)
+                with _quiet_fork():
+                    results = pool.map(_call, range(len(items)))  # submits every item: the workers are forked here
+            except OSError:  # a fork refused (memory, process slots): end those already forked, and do the work here
+                _abandon(pool, others)
+                return _loop(function, items, done)
+            try:
+                out = []
+                for item, result in zip(items, results):
+                    out.append(result)
+                    if done is not None:
+                        done(item, result)
+            except BrokenProcessPool as error:
+                _abandon(pool, others)
+                raise WorkerDied(_DIED) from error
+            except BaseException:
+                _abandon(pool, others)
+                raise
+            pool.shutdown()
+            return out
     finally:
         _job = None
-        single.__exit__(None, None, None)
         _forking.release()
 
 
@@ -179,12 +177,15 @@ class TaskPool:
             self._held = True
             _job = (self.function, None)
             self._others = set(multiprocessing.active_children())
-            self._single = _one_thread()
-            self._single.__enter__()
+            self._single = ExitStack()
             try:
+                self._single.enter_context(_one_thread())
                 self._pool = _new_pool(self.workers)
             except OSError:
                 self._pool = None
+            except BaseException:
+                self._release()
+                raise
         return self
 
     def map(self, batch: Sequence[tuple]) -> list:
@@ -217,10 +218,17 @@ class TaskPool:
         finally:
             self._pool = None
             if self._held:
-                _job = None
-                self._single.__exit__(None, None, None)
-                _forking.release()
-                self._held = False
+                self._release()
+
+    def _release(self) -> None:
+        """Open3D's thread setting back and the fork lock freed (held since __enter__)."""
+        global _job
+        _job = None
+        self._held = False
+        try:
+            self._single.close()
+        finally:
+            _forking.release()
 
 
 def _abandon(pool: ProcessPoolExecutor | None, others: set) -> None:
