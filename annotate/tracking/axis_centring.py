@@ -69,13 +69,10 @@ class Body(NamedTuple):
 def wall_normals(points: np.ndarray, radius: float, camera: np.ndarray) -> np.ndarray:
     """Unit normals (N, 3) of ``points`` (N, 3) m, from up to 32 neighbours within ``radius`` m, turned towards
     ``camera`` (3,; the same frame)."""
-    points = np.asarray(points, dtype=np.float64)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=32))
-    normals = np.asarray(cloud.normals)
-    # turned here, not by Open3D's orient_normals_towards_camera_location: that runs on all cores whatever Open3D's
-    # thread setting, and in a forked worker whose parent had run OpenMP on several threads it hung (the test suite)
-    return np.where((np.sum(normals * (np.asarray(camera, dtype=np.float64) - points), axis=1) < 0)[:, None], -normals, normals)
+    cloud.orient_normals_towards_camera_location(np.asarray(camera, dtype=np.float64))
+    return np.asarray(cloud.normals)
 
 
 def fit_body(points: np.ndarray, normals: np.ndarray) -> Body | None:

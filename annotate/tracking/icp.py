@@ -136,10 +136,6 @@ class NearestModelPoints:
         return self._d2
 
 
-#: Slack (m) on the certificates: far above the rounding of distances under 1 m (~1e-16 m), far below model spacing.
-_SLACK = 1e-9
-
-
 def correspondences(nearest: NearestModelPoints, query: np.ndarray, distance: float, camera: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """Open3D's correspondence step (GetRegistrationResultAndCorrespondences) with the points moved to ``query`` (N, 3).
 
