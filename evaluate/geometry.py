@@ -8,10 +8,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-#: REDWOOD75 raw object axes in terms of ShapeNet axes: raw x = ShapeNet z, raw y = -ShapeNet y,
-#: raw z = ShapeNet x.  ``p_raw = RAW_FROM_SHAPENET @ p_shapenet``.
-RAW_FROM_SHAPENET = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
-SHAPENET_FROM_RAW = RAW_FROM_SHAPENET.T
+# REDWOOD75 raw object axes (raw x = ShapeNet z, raw y = -ShapeNet y, raw z = ShapeNet x): the data layer owns them
+from sequences.axes import RAW_FROM_SHAPENET, SHAPENET_FROM_RAW, raw_to_shapenet_points, shapenet_to_raw_points  # noqa: F401
 
 #: The 12 edges of a box, as index pairs into :func:`box_corners`.
 BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
@@ -108,14 +106,6 @@ def raw_to_shapenet_pose(T) -> np.ndarray:
     out = np.array(T, dtype=np.float64, copy=True)
     out[:3, :3] = out[:3, :3] @ RAW_FROM_SHAPENET
     return out
-
-
-def shapenet_to_raw_points(points) -> np.ndarray:
-    return np.asarray(points, dtype=np.float64) @ RAW_FROM_SHAPENET.T
-
-
-def raw_to_shapenet_points(points) -> np.ndarray:
-    return np.asarray(points, dtype=np.float64) @ SHAPENET_FROM_RAW.T
 
 
 def shapenet_to_raw_extents(extents) -> np.ndarray:

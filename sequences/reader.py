@@ -104,10 +104,12 @@ def _list_images(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
 
 
 class Sequence:
-    """A Redwood-layout RGB-D sequence, read lazily.
+    """An RGB-D sequence, read lazily: Redwood's layout (``SEQ/rgb``, ``SEQ/depth``), or another layout that
+    :func:`open_sequence` recognises (YCB-Video's, BOP's), whose frames and camera its reader lists.
 
     ``frames`` lists the paired frames in time order; ``color(i)`` gives (H, W, 3) uint8 RGB and
-    ``depth(i)`` gives (H, W) float32 metres with 0 where there is no measurement.
+    ``depth(i)`` gives (H, W) float32 metres with 0 where there is no measurement. ``layout`` names the
+    layout ("redwood", "ycbv", "bop").
     """
 
     def __init__(self, root: str | Path, tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> None:
@@ -119,10 +121,8 @@ class Sequence:
         for sub in ("rgb", "depth"):
             if not (root / sub).is_dir():
                 raise InputError(root / sub, f"missing {sub}/ folder (Redwood layout: SEQ/rgb and SEQ/depth)")
-        self.root = root
-        self.name = root.resolve().name
         camera_file = root / "camera.yaml"
-        self.camera = Camera.from_yaml(camera_file) if camera_file.exists() else Camera()
+        camera = Camera.from_yaml(camera_file) if camera_file.exists() else Camera()
         color = _list_images(root / "rgb", COLOR_SUFFIXES)
         depth = _list_images(root / "depth", DEPTH_SUFFIXES)
         if not color:
@@ -132,12 +132,27 @@ class Sequence:
         pairing = pair_frames(color, depth, tolerance_us)
         if not pairing.frames:
             raise InputError(root, f"no colour frame has a depth frame within {tolerance_us} us")
-        self.frames: list[FrameFiles] = pairing.frames
-        self.unpaired_color = pairing.unpaired_color
-        self.unpaired_depth = pairing.unpaired_depth
+        self._setup(root, pairing.frames, camera, "redwood", pairing.unpaired_color, pairing.unpaired_depth)
+
+    def _setup(self, root: Path, frames: list[FrameFiles], camera: Camera, layout: str,
+               unpaired_color: list[Path] | None = None, unpaired_depth: list[Path] | None = None) -> None:
+        self.root = root
+        self.name = root.resolve().name
+        self.camera = camera
+        self.layout = layout
+        self.frames: list[FrameFiles] = frames
+        self.unpaired_color = unpaired_color or []
+        self.unpaired_depth = unpaired_depth or []
         self._index = {f.id: i for i, f in enumerate(self.frames)}
         if len(self._index) != len(self.frames):
-            raise InputError(root / "rgb", "two colour files share a frame number")
+            raise InputError(root, "two colour files share a frame number")
+
+    @classmethod
+    def from_frames(cls, root: str | Path, frames: list[FrameFiles], camera: Camera, layout: str) -> "Sequence":
+        """A sequence of already paired ``frames`` (another layout's reader lists them)."""
+        sequence = cls.__new__(cls)
+        sequence._setup(Path(root), frames, camera, layout)
+        return sequence
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -183,5 +198,15 @@ class Sequence:
 
 
 def open_sequence(root: str | Path, tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> Sequence:
-    """Open a Redwood-layout sequence (lists files only; see :class:`Sequence`)."""
+    """Open a sequence (lists files only; see :class:`Sequence`): Redwood's layout, a BOP scene (``rgb/``, ``depth/``
+    and ``scene_camera.json``) or a YCB-Video video folder (``NNNNNN-color.*``, ``NNNNNN-depth.png``, ``poses.json``)."""
+    root = Path(root)
+    if root.is_dir() and (root / "scene_camera.json").is_file():
+        from .bop import open_bop_scene
+
+        return open_bop_scene(root)
+    if root.is_dir() and not (root / "rgb").exists() and any(root.glob("*-color.*")):
+        from .ycbv import open_ycbv_video
+
+        return open_ycbv_video(root)
     return Sequence(root, tolerance_us)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from evaluate.geometry import matrix_to_quat
+from sequences.axes import SHAPENET_FROM_NOCS
 from sequences.camera import Camera
 from sequences.errors import InputError
 
@@ -32,8 +33,6 @@ NOCS_CAMERA = Camera(fx=591.0125, fy=590.16775, cx=322.525, cy=244.11084, width=
 NOCS_CATEGORIES = {1: "bottle", 2: "bowl", 3: "camera", 4: "can", 5: "laptop", 6: "mug"}
 SYMMETRIC = ("bottle", "bowl", "can")
 BACKGROUND = 255
-#: ShapeNet coordinates from NOCS coordinates (cpas_toolbox's rotation_o2n for y -> y, x -> -z).
-SHAPENET_FROM_NOCS = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 #: Rotation matrices whose columns' norms differ by more than this (relative) are not a scaled rotation.
 SCALE_TOLERANCE = 1e-3
 

@@ -52,7 +52,7 @@ RETRACT = 0.05  # how far the open hand backs off the surface between grasps, me
 
 @dataclass
 class Trajectory:
-    """Object-to-camera rotations (N, 3, 3) and positions (N, 3) of the object's box centre."""
+    """Object-to-camera rotations (N, 3, 3) and positions (N, 3) of the object's box centre, one per frame."""
 
     rotations: np.ndarray
     positions: np.ndarray
@@ -61,6 +61,20 @@ class Trajectory:
         T = np.eye(4)
         T[:3, :3] = self.rotations[i]
         T[:3, 3] = self.positions[i]
+        return T
+
+    def pose_at(self, t: float) -> np.ndarray:
+        """The pose at fractional frame ``t`` (a depth image taken between two colour frames): rotation slerped and
+        position interpolated between the neighbouring frames, extrapolated by the last (first) step beyond the ends."""
+        n = len(self)
+        if n == 1:
+            return self.pose(0)
+        i = int(np.clip(np.floor(t), 0, n - 2))
+        u = float(t - i)
+        step = Rotation.from_matrix(self.rotations[i + 1] @ self.rotations[i].T).as_rotvec()
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(step * u).as_matrix() @ self.rotations[i]
+        T[:3, 3] = self.positions[i] + u * (self.positions[i + 1] - self.positions[i])
         return T
 
     def __len__(self) -> int:
@@ -114,14 +128,15 @@ def _worst_face(rotations: list[Rotation]) -> float:
     return float(np.degrees(np.arccos(np.clip(toward.max(axis=0), -1, 1))).max())
 
 
-def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | None = None) -> Trajectory:
+def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | None = None, turn_speed: float = 1.0) -> Trajectory:
     """A smooth hand-held trajectory visiting up, down and sideways orientations of the object's y axis,
     including toward the camera (into the top) and away from it (the bottom) whenever it has 4+ keys (always).
 
     ``held`` (frames,) bool: frames where the hand holds the object; in the others (a regrasp) the
-    object drifts at RELEASED_SPEED of its pace instead of turning on its own.
+    object drifts at RELEASED_SPEED of its pace instead of turning on its own. ``turn_speed`` scales the
+    number of keys (about 90 degrees each) over the frames.
     """
-    keys = max(4, int(round(frames / FRAMES_PER_KEY)))
+    keys = max(4, int(round(frames * turn_speed / FRAMES_PER_KEY)))
     up, down = np.array([0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0])
     sides = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, -1.0], [0, 0, 1.0]])
     # upright, handle (object -z) toward the camera, then a random spin about the object's y axis
@@ -154,15 +169,19 @@ def object_trajectory(frames: int, rng: np.random.Generator, held: np.ndarray | 
     s = s / s[-1] if frames > 1 else s
     R = RotationSpline(times, Rotation.concatenate(rotations))(s).as_matrix()
 
-    # centre: a base point plus two sinusoids per axis; amplitudes keep it 0.5-0.85 m away and in view
+    return Trajectory(R, drift_positions(s, keys, rng))
+
+
+def drift_positions(s: np.ndarray, keys: int, rng: np.random.Generator) -> np.ndarray:
+    """(N, 3) box centres along path parameters ``s`` in 0..1: a base point plus two sinusoids per axis (more cycles
+    with more ``keys``); the amplitudes keep the object 0.5-0.85 m away and in view."""
     base = np.array([rng.uniform(-0.04, 0.04), rng.uniform(-0.03, 0.04), rng.uniform(0.58, 0.74)])
     amplitude = np.array([0.05, 0.035, 0.08])
     cycles = max(1.0, keys / 4)
     phase = rng.uniform(0, 2 * np.pi, (2, 3))
     freq = rng.uniform(0.5, 1.0, (2, 3)) * cycles
     offset = 0.6 * np.sin(2 * np.pi * freq[0] * s[:, None] + phase[0]) + 0.4 * np.sin(2 * np.pi * freq[1] * s[:, None] + phase[1])
-    positions = base + amplitude * offset
-    return Trajectory(R, positions)
+    return base + amplitude * offset
 
 
 @dataclass
@@ -333,12 +352,14 @@ class GraspPlanner:
 
 @dataclass
 class HandState:
-    """The hand at one frame: its frame in the object frame, finger chains in the hand frame, and whether it holds."""
+    """The hand at one frame: its frame in the object frame, finger chains in the hand frame, whether it holds the
+    object, and whether it is in the scene at all (it is not while the object rests on a table)."""
 
     hand_in_object: np.ndarray  # (4, 4)
     chains: np.ndarray  # (5, 4, 3)
     holding: bool
     grasp: int  # index of the current (or, while moving, the next) grasp
+    present: bool = True
 
 
 def _smoothstep(x: np.ndarray | float) -> np.ndarray | float:
@@ -399,10 +420,16 @@ def held_frames(frames: int, schedule: list[tuple[int, int]]) -> np.ndarray:
     return held
 
 
-def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner: GraspPlanner, elbow: np.ndarray) -> list[Grasp]:
-    """A grasp for each (first, last) frame range of ``schedule``, each elsewhere than the one before."""
+def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner: GraspPlanner, elbow: np.ndarray,
+                resting: np.ndarray | None = None) -> list[Grasp]:
+    """A grasp for each (first, last) frame range of ``schedule``, each elsewhere than the one before.
+
+    ``resting`` (frames,) bool: frames where the object rests with no hand on it; they show it free too.
+    """
     grasps: list[Grasp] = []
     held = held_frames(len(trajectory), schedule)
+    if resting is not None:
+        held |= resting
     for first, last in schedule:
         hold = slice(first, last + 1)
         others = held.copy()
@@ -412,8 +439,23 @@ def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner
     return grasps
 
 
-def hand_states(frames: int, grasps: list[Grasp]) -> list[HandState]:
-    """The hand at every frame: holding within a grasp, else releasing / moving / re-approaching."""
+#: Frames over which the hand comes to (or leaves) an object resting on a table, and how far away it starts (metres).
+APPROACH_FRAMES = 5
+AWAY = 0.3
+
+
+def _approach(grasp: Grasp, frames_left: int, relaxed: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The hand ``frames_left`` frames before it takes ``grasp`` (or after it lets go) of a resting object:
+    from AWAY off the surface to the grasp, opening as it leaves; absent beyond APPROACH_FRAMES."""
+    if frames_left > APPROACH_FRAMES:
+        return grasp.hand_in_object, relaxed, False
+    u = _smoothstep(frames_left / APPROACH_FRAMES)
+    return _offset(grasp.hand_in_object, RETRACT * min(1.0, 3 * u) + AWAY * u), (1 - u) * grasp.wrapped + u * relaxed, True
+
+
+def hand_states(frames: int, grasps: list[Grasp], resting: np.ndarray | None = None) -> list[HandState]:
+    """The hand at every frame: holding within a grasp, else releasing / moving / re-approaching; with ``resting``
+    (frames,) bool, it leaves a resting object and comes back to it (absent in between), as before a first grasp."""
     relaxed = open_hand()
     states = []
     for i in range(frames):  # per frame, a handful of 4x4 operations
@@ -422,7 +464,16 @@ def hand_states(frames: int, grasps: list[Grasp]) -> list[HandState]:
             g = grasps[current]
             states.append(HandState(g.hand_in_object, g.wrapped, True, current))
             continue
-        after = next(k for k, g in enumerate(grasps) if g.first > i)
+        after = next((k for k, g in enumerate(grasps) if g.first > i), None)
+        if after is None or after == 0 or (resting is not None and resting[i]):
+            # a resting object: the hand comes to the next grasp, or leaves the last one, from far off
+            before = next((k for k in range(len(grasps) - 1, -1, -1) if grasps[k].last < i), None)
+            to_next = grasps[after].first - i if after is not None else frames
+            from_last = i - grasps[before].last if before is not None else frames
+            k = after if to_next <= from_last else before
+            T, chains, present = _approach(grasps[k], min(to_next, from_last), relaxed)
+            states.append(HandState(T, chains, False, k if after is None else after, present))
+            continue
         A, B = grasps[after - 1], grasps[after]
         u = (i - A.last) / (B.first - A.last)
         if u < 0.35:

@@ -149,14 +149,19 @@ def tube(path: np.ndarray, radius: float, sections: int = 12) -> tuple[np.ndarra
     return vertices, _outward(vertices, faces)
 
 
-def revolve(profile: np.ndarray, sections: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """Surface of revolution about +y of a closed-at-the-axis profile (N, 2) of (radius, height): (vertices, faces).
+def revolve(profile: np.ndarray, sections: int = 64, section_scale: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Surface about +y of a closed-at-the-axis profile (N, 2) of (radius, height): (vertices, faces).
 
-    The profile must start and end on the axis (radius 0) so the surface is closed.
+    The profile must start and end on the axis (radius 0) so the surface is closed. ``section_scale``
+    ((sections,) or (N, sections), positive) multiplies each ring's radius per angle phi (measured from +z
+    toward +x, ``phi = 2 pi j / sections``): ones give a solid of revolution, a superellipse a square or
+    oval cross-section.
     """
     profile = np.asarray(profile, float)
     phi = np.linspace(0.0, 2 * np.pi, sections, endpoint=False)
     r, h = profile[:, :1], profile[:, 1:]
+    if section_scale is not None:
+        r = r * np.broadcast_to(np.asarray(section_scale, float), (len(profile), sections))
     rings = np.stack([r * np.sin(phi), np.broadcast_to(h, (len(profile), sections)), r * np.cos(phi)], -1)
     n = len(profile)
     i, j = np.meshgrid(np.arange(n - 1), np.arange(sections), indexing="ij")

@@ -44,8 +44,9 @@ class Layout:
     light: np.ndarray  # unit direction toward the light
 
 
-def make_layout(mean_position: np.ndarray, rng: np.random.Generator) -> Layout:
-    """A random but plausible layout for an object held around ``mean_position``."""
+def make_layout(mean_position: np.ndarray, rng: np.random.Generator, table: tuple[float, float] | None = None) -> Layout:
+    """A random but plausible layout for an object held around ``mean_position``; ``table`` (the top's camera y and
+    the camera z of its front edge) places the table where the object rests on it."""
     side = float(rng.choice([-1.0, 1.0]))
     torso_z = mean_position[2] + rng.uniform(0.38, 0.5)
     torso_centre = np.array([rng.uniform(-0.08, 0.08), rng.uniform(0.22, 0.3), torso_z])
@@ -66,7 +67,8 @@ def make_layout(mean_position: np.ndarray, rng: np.random.Generator) -> Layout:
         side=side, torso_centre=torso_centre, torso_axes=torso_axes, head_centre=head_centre, head_radius=head_radius,
         shoulder=shoulder, elbow=elbow, mean_position=np.asarray(mean_position, float),
         wall_centre=np.array([0.0, 0.0, wall_z]), wall_normal=wall_normal,
-        table_height=rng.uniform(0.3, 0.42), table_near=mean_position[2] + rng.uniform(0.1, 0.2),
+        table_height=rng.uniform(0.3, 0.42) if table is None else table[0],
+        table_near=mean_position[2] + rng.uniform(0.1, 0.2) if table is None else table[1],
         skin=np.array([0.86, 0.63, 0.5]) * rng.uniform(0.6, 1.1) + rng.uniform(-0.04, 0.04, 3),
         shirt=0.15 + 0.7 * hue, hair=np.array([0.12, 0.08, 0.05]) * rng.uniform(0.7, 2.0),
         wall_colour=np.array([0.82, 0.8, 0.74]) + rng.uniform(-0.08, 0.08, 3),

@@ -1,8 +1,13 @@
-"""Procedural object meshes per category, and loading a given mesh file, in the ShapeNet object frame.
+"""Procedural object meshes, and loading a given mesh (or point) file, in the ShapeNet object frame.
 
-Object frame: ShapeNet axes (y up; bottles, bowls and cans symmetric about y; a mug's handle along
--z, as in REDWOOD75 and NOCS after cpas_toolbox's remapping), metres, centred on its axis-aligned box. Sizes are drawn per seed within realistic ranges:
-mug 8-12 cm tall, bowl 12-18 cm wide, bottle 20-30 cm tall, can about 6.6-7.6 x 10-13 cm.
+Object frame: ShapeNet axes (y up; a mug's handle along -z, as in REDWOOD75 and NOCS after
+cpas_toolbox's remapping), metres, centred on its axis-aligned box. Sizes are drawn per seed within
+realistic ranges: mug 8-12 cm tall, bowl 12-18 cm wide, bottle 20-30 cm tall, can about 6.6-7.6 x 10-13 cm.
+
+Each category has its plain shape (a solid of revolution for bottles, bowls and cans) and variants
+(:data:`PROCEDURAL_SHAPES`): bottles, bowls and cans carry the label ``symmetry: y`` in the document,
+but a square or oval bowl and a flattened or fluted bottle are no solids of revolution, and mugs come
+with C, D and ring handles.
 """
 
 from __future__ import annotations
@@ -12,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ..axes import MESH_AXES, to_shapenet_points
 from ..errors import InputError
-from .options import MESH_AXES, PROCEDURAL_CATEGORIES
+from .options import PROCEDURAL_SHAPES
 from .primitives import revolve, tube
 
 #: Accepted object sizes for a given mesh (largest box side, metres): the scene is built for hand-held objects.
@@ -34,7 +40,18 @@ def _mesh(parts: list[tuple[np.ndarray, np.ndarray]]) -> trimesh.Trimesh:
     return centred(trimesh.Trimesh(vertices, faces, process=False))
 
 
-def _bottle(rng: np.random.Generator) -> trimesh.Trimesh:
+def superellipse(phi: np.ndarray, half_z: float, half_x: float, power: float) -> np.ndarray:
+    """Radius (per unit) of the superellipse |z / half_z|^p + |x / half_x|^p = 1 at angles ``phi`` (from +z toward +x):
+    power 2 an ellipse, larger powers a rounded rectangle."""
+    c, s = np.abs(np.cos(phi)) / half_z, np.abs(np.sin(phi)) / half_x
+    return (c**power + s**power) ** (-1.0 / power)
+
+
+def _angles(sections: int) -> np.ndarray:
+    return np.linspace(0.0, 2 * np.pi, sections, endpoint=False)
+
+
+def _bottle(rng: np.random.Generator, variant: str = "round") -> trimesh.Trimesh:
     height = rng.uniform(0.20, 0.30)
     radius = rng.uniform(0.030, 0.045)
     neck = rng.uniform(0.011, 0.017)
@@ -48,7 +65,17 @@ def _bottle(rng: np.random.Generator) -> trimesh.Trimesh:
         shoulder_curve,
         [[neck, height - 0.018], [neck + 0.002, height - 0.016], [neck + 0.002, height - 0.003], [neck + 0.001, height], [0.0, height]],
     ])
-    return _mesh([revolve(profile, 48)])
+    if variant == "round":
+        return _mesh([revolve(profile, 48)])
+    sections = 96
+    phi = _angles(sections)
+    # the body takes the cross-section; it blends into the round neck through the shoulder
+    body = np.clip((neck_start - profile[:, 1]) / (neck_start - shoulder), 0.0, 1.0)[:, None]
+    if variant == "flat":  # a flask: an oval body, a third to a half narrower across x
+        section = superellipse(phi, 1.0, rng.uniform(0.5, 0.68), rng.uniform(2.0, 3.0))
+    else:  # fluted: vertical grooves around the body
+        section = 1.0 + rng.uniform(0.05, 0.08) * np.cos(rng.integers(8, 13) * phi)
+    return _mesh([revolve(profile, sections, 1.0 + body * (section[None] - 1.0))])
 
 
 def _can(rng: np.random.Generator) -> trimesh.Trimesh:
@@ -60,7 +87,7 @@ def _can(rng: np.random.Generator) -> trimesh.Trimesh:
     return _mesh([revolve(np.array(profile), 48)])
 
 
-def _bowl(rng: np.random.Generator) -> trimesh.Trimesh:
+def _bowl(rng: np.random.Generator, variant: str = "round") -> trimesh.Trimesh:
     rim = rng.uniform(0.06, 0.09)
     height = rng.uniform(0.45, 0.65) * rim
     foot = rng.uniform(0.35, 0.5) * rim
@@ -69,10 +96,17 @@ def _bowl(rng: np.random.Generator) -> trimesh.Trimesh:
     outer = np.stack([foot + (rim - foot) * np.sin(s * np.pi / 2) ** 0.8, 0.006 + (height - 0.006) * s], -1)
     inner = np.stack([(foot - wall) + (rim - wall - foot + wall) * np.sin(s * np.pi / 2) ** 0.8, wall + 0.006 + (height - wall - 0.006) * s], -1)[::-1]
     profile = np.concatenate([[[0.0, 0.0], [foot, 0.0]], outer, [[rim - wall / 2, height + 0.001]], inner, [[0.0, wall + 0.006]]])
-    return _mesh([revolve(profile, 64)])
+    if variant == "round":
+        return _mesh([revolve(profile, 64)])
+    phi = _angles(128)
+    if variant == "square":  # a rounded square seen from above, its sides as wide as the round bowl's rim
+        section = superellipse(phi, 1.0, 1.0, rng.uniform(4.0, 8.0))
+    else:  # oval: a fifth to a third narrower across x
+        section = superellipse(phi, 1.0, rng.uniform(0.68, 0.8), 2.0)
+    return _mesh([revolve(profile, 128, section)])
 
 
-def _mug(rng: np.random.Generator) -> trimesh.Trimesh:
+def _mug(rng: np.random.Generator, handle: str = "c") -> trimesh.Trimesh:
     height = rng.uniform(0.08, 0.12)
     radius = rng.uniform(0.036, 0.048)
     wall = rng.uniform(0.003, 0.006)
@@ -87,9 +121,21 @@ def _mug(rng: np.random.Generator) -> trimesh.Trimesh:
     thickness = rng.uniform(0.005, 0.008)
     a = np.linspace(-np.pi / 2, np.pi / 2, 20)
     wall_z = radius * (0.5 * (1 + taper)) - wall / 2
-    path = np.stack([np.zeros_like(a), height * 0.5 - half * np.sin(a), -(wall_z + reach * np.cos(a) ** 0.8)], -1)
-    handle = tube(path, thickness, 12)
-    return _mesh([body, handle])
+    if handle == "c":
+        path = np.stack([np.zeros_like(a), height * 0.5 - half * np.sin(a), -(wall_z + reach * np.cos(a) ** 0.8)], -1)
+    elif handle == "d":  # squared off: out, down, back in, with rounded corners
+        a = np.linspace(-np.pi / 2, np.pi / 2, 40)
+        power = rng.uniform(8.0, 12.0)
+        along = np.sign(np.sin(a)) * np.abs(np.sin(a)) ** (2 / power)
+        path = np.stack([np.zeros_like(a), height * 0.5 - half * along, -(wall_z + reach * np.abs(np.cos(a)) ** (2 / power))], -1)
+    else:  # ring: a small closed loop on the upper wall, as on a teacup
+        loop = rng.uniform(0.010, 0.014)
+        thickness *= 0.75
+        b = np.linspace(0.0, 2 * np.pi, 33)
+        centre_y = height * rng.uniform(0.6, 0.72)
+        # the loop's near side is buried in the wall (the mug tapers: the wall is nearer the axis below the rim)
+        path = np.stack([np.zeros_like(b), centre_y + loop * np.sin(b), -(wall_z - 0.5 * thickness + loop * (1.0 - np.cos(b)))], -1)
+    return _mesh([body, tube(path, thickness, 12)])
 
 
 def _box(size: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,40 +166,83 @@ def _laptop(rng: np.random.Generator) -> trimesh.Trimesh:
     return _mesh([base, (screen_v, screen_f)])
 
 
-_BUILDERS = {"bottle": _bottle, "bowl": _bowl, "mug": _mug, "can": _can, "camera": _camera, "laptop": _laptop}
+_BUILDERS = {
+    "bottle": _bottle, "flat_bottle": lambda rng: _bottle(rng, "flat"), "fluted_bottle": lambda rng: _bottle(rng, "fluted"),
+    "bowl": _bowl, "square_bowl": lambda rng: _bowl(rng, "square"), "oval_bowl": lambda rng: _bowl(rng, "oval"),
+    "can": _can, "mug": _mug, "mug_d_handle": lambda rng: _mug(rng, "d"), "mug_ring_handle": lambda rng: _mug(rng, "ring"),
+    "camera": _camera, "laptop": _laptop,
+}
 
 
-def procedural_mesh(category: str, rng: np.random.Generator) -> trimesh.Trimesh:
-    """A procedural object of ``category`` (one of :data:`PROCEDURAL_CATEGORIES`), shape drawn from ``rng``."""
-    if category not in PROCEDURAL_CATEGORIES:
-        raise ValueError(f"no procedural shape for {category!r}; one of {', '.join(PROCEDURAL_CATEGORIES)}")
-    return _BUILDERS[category](rng)
+def procedural_mesh(shape: str, rng: np.random.Generator) -> trimesh.Trimesh:
+    """A procedural object (a category's name, or a variant of :data:`PROCEDURAL_SHAPES`), its sizes drawn from ``rng``."""
+    if shape not in PROCEDURAL_SHAPES:
+        raise ValueError(f"no procedural shape {shape!r}; one of {', '.join(PROCEDURAL_SHAPES)}")
+    return _BUILDERS[shape](rng)
+
+
+#: Point files (x y z per line, metres) are meshed; the YCB models of YCB-Video come as such.
+POINT_SUFFIXES = (".xyz", ".pts")
+
+
+def mesh_from_points(points: np.ndarray) -> trimesh.Trimesh:
+    """A closed surface through an object's surface points (N, 3): screened Poisson reconstruction (Open3D),
+    normals oriented outward by a consistent tangent plane, cut to the points' box, the largest part kept."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+    cloud.orient_normals_consistent_tangent_plane(12)
+    normals = np.asarray(cloud.normals)
+    if np.einsum("ij,ij->", normals, points - points.mean(axis=0)) < 0:  # outward on the whole
+        cloud.normals = o3d.utility.Vector3dVector(-normals)
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        surface, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=7, linear_fit=True)
+    # Poisson's surface overshoots the points where they end (an edge of a box): cut it at their box
+    box = o3d.geometry.AxisAlignedBoundingBox(points.min(axis=0) - 1e-4, points.max(axis=0) + 1e-4)
+    surface = surface.crop(box)
+    mesh = trimesh.Trimesh(np.asarray(surface.vertices), np.asarray(surface.triangles), process=True)
+    parts = mesh.split(only_watertight=False)
+    return max(parts, key=lambda part: part.area) if len(parts) else mesh
+
+
+def _read_points(path: Path) -> np.ndarray:
+    try:
+        points = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (OSError, ValueError) as error:
+        raise InputError(path, f"unreadable point file ({error.__class__.__name__}: {' '.join(str(error).split())[:120]})") from error
+    if points.ndim != 2 or points.shape[1] < 3 or len(points) < 100:
+        raise InputError(path, f"point file must hold at least 100 rows of x y z, got shape {points.shape}")
+    return points[:, :3]
 
 
 def load_mesh(path: str | Path, axes: str = "shapenet") -> trimesh.Trimesh:
-    """Read any mesh file trimesh can load; convert REDWOOD75 raw axes to ShapeNet's; centre on its box.
+    """Read any mesh file trimesh can load (or a point file, meshed: :func:`mesh_from_points`); convert its axes
+    (:data:`sequences.axes.MESH_AXES`) to ShapeNet's; centre on its box.
 
     Raises InputError for an unreadable file, a file without triangles, or an implausible size.
     """
-    from evaluate.geometry import raw_to_shapenet_points
-
     path = Path(path)
     if axes not in MESH_AXES:
         raise InputError(path, f"mesh axes {axes!r} are not one of {', '.join(MESH_AXES)}")
     if not path.is_file():
         raise InputError(path, "mesh file not found")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as error:  # trimesh raises many types for corrupt files
-        raise InputError(path, f"unreadable mesh ({error.__class__.__name__}: {' '.join(str(error).split())[:120]})") from error
+    if path.suffix.lower() in POINT_SUFFIXES:
+        points = _read_points(path)
+        if not np.all(np.isfinite(points)):
+            raise InputError(path, "point file has NaN or infinite coordinates")
+        mesh = mesh_from_points(points)
+    else:
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as error:  # trimesh raises many types for corrupt files
+            raise InputError(path, f"unreadable mesh ({error.__class__.__name__}: {' '.join(str(error).split())[:120]})") from error
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(path, "mesh file holds no triangles")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if not np.all(np.isfinite(vertices)):
         raise InputError(path, "mesh has NaN or infinite vertex coordinates")
-    if axes == "redwood75":
-        vertices = raw_to_shapenet_points(vertices)
-    mesh = centred(trimesh.Trimesh(vertices, np.asarray(mesh.faces), process=False))
+    mesh = centred(trimesh.Trimesh(to_shapenet_points(vertices, axes), np.asarray(mesh.faces), process=False))
     size = float(mesh.extents.max())
     if not (MESH_SIZE_RANGE[0] <= size <= MESH_SIZE_RANGE[1]):
         raise InputError(path, f"mesh is {size:.3g} m across; expected a hand-held object of {MESH_SIZE_RANGE[0]}-{MESH_SIZE_RANGE[1]} m (units must be metres)")

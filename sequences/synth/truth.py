@@ -10,8 +10,8 @@ generator's notes (seed, camera, grasps, whether the hand holds the object in ea
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import trimesh
@@ -20,33 +20,20 @@ from scipy.spatial.transform import Rotation
 
 from ..annotation import Annotation, FramePose
 from ..errors import InputError
+from ..truth import Truth
 
 TRUTH_DIR = "truth"
 
 
-@dataclass
-class Truth:
-    """A synthetic sequence's truth: poses (frame id -> 4x4 object-to-camera), the mesh, masks on demand."""
-
-    root: Path
-    category: str
-    symmetry: str
-    extents: np.ndarray  # (3,) full box side lengths along object x, y, z, metres
-    poses: dict[str, np.ndarray]
-    mesh: trimesh.Trimesh
-    notes: dict = field(default_factory=dict)  # everything else truth.json holds (seed, camera, hand, grasps)
-
-    @property
-    def ids(self) -> list[str]:
-        return sorted(self.poses)
-
-    def mask(self, frame_id: str) -> np.ndarray:
-        """(H, W) bool: pixels where the object is the visible surface in frame ``frame_id``."""
-        path = self.root / TRUTH_DIR / "masks" / f"{frame_id}.png"
+def _mask_reader(root: Path) -> Callable[[str], np.ndarray]:
+    def mask(frame_id: str) -> np.ndarray:
+        path = root / TRUTH_DIR / "masks" / f"{frame_id}.png"
         try:
             return np.asarray(Image.open(path)) > 127
         except FileNotFoundError as error:
             raise InputError(path, f"no truth mask for frame {frame_id}") from error
+
+    return mask
 
 
 def write_mask(root: Path, frame_id: str, mask: np.ndarray) -> None:
@@ -103,7 +90,7 @@ def load_truth(sequence_root: str | Path) -> Truth:
     except Exception as error:
         raise InputError(mesh_path, f"unreadable truth mesh ({error.__class__.__name__})") from error
     notes = {k: v for k, v in data.items() if k not in ("category", "symmetry", "extents", "poses")}
-    return Truth(root, category, symmetry, extents, poses, mesh, notes)
+    return Truth(root, category, symmetry, extents, poses, mesh, notes, masks=_mask_reader(root))
 
 
 def truth_annotation(truth: Truth, manual_ids, rotation_deg: float = 0.0, translation_m: float = 0.0,

@@ -1,0 +1,170 @@
+"""How close ground truth made by the toolkit (tracked poses, a reconstructed mesh) comes to a known truth.
+
+The benchmark suite (``benchmarks/run_suite.py``) scores every sequence with these figures:
+
+- poses: rotation error (symmetry-aware: for ``symmetry: y`` the angle between the y axes), box-centre
+  error, the share of frames flagged for review, and frames off by more than 5 degrees (or 10 mm) that
+  carry no flag;
+- the reconstruction posed in every frame against the true mesh posed in it (the F-score at 5 mm in the
+  true object frame, median over frames): pose and shape errors together, as a user of the export sees them;
+- the reconstruction's shape alone (aligned to the true mesh by the mean of its frames' transforms, then
+  ICP): F-score at 5 mm overall, and precision and recall on the *observed* true surface (what some frame
+  measured: visible from its camera and within OBSERVED_TOLERANCE of a measured point of the object);
+- the extents of its tight box against the true extents.
+
+Frames: poses map object (ShapeNet axes, metres) to camera (OpenCV); meshes in the object frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from evaluate.metrics.pose_errors import rotation_error
+from evaluate.metrics.sampling import ShapeIndex, sample_surface
+from evaluate.metrics.shape_metrics import fscore_from_hits
+
+#: A true surface sample counts as observed in a frame when its camera sees it (the first hit of the ray to it) and a
+#: measured object point lies within this distance (metres): depth noise, quantisation and a pixel's footprint.
+OBSERVED_TOLERANCE = 0.004
+#: The F-score distance of the suite's shape and posed figures (metres).
+FSCORE_THRESHOLD = 0.005
+
+
+def surface_sample_count(area: float, threshold: float = FSCORE_THRESHOLD, minimum: int = 5000) -> int:
+    """Points to sample on a surface of ``area`` m^2 so that they lie at most half the F-score threshold apart: two
+    samplings of one surface agree only to about their spacing (a 3456 cm^2 laptop with 5000 points: F@5mm 0.83 against
+    itself)."""
+    return max(minimum, int(np.ceil(area / (threshold / 2) ** 2)))
+
+
+def pose_scores(poses: dict[str, np.ndarray], flagged: dict[str, bool], truth_poses: dict[str, np.ndarray], symmetry: str) -> dict:
+    """Figures of tracked ``poses`` against ``truth_poses`` over the frames both hold (degrees, millimetres, shares)."""
+    ids = [f for f in truth_poses if f in poses]
+    if not ids:
+        raise ValueError("no frame has both a pose and a true pose")
+    A = np.stack([truth_poses[f] for f in ids])
+    B = np.stack([poses[f] for f in ids])
+    degrees = rotation_error(A[:, :3, :3], B[:, :3, :3], symmetry)
+    mm = np.linalg.norm(A[:, :3, 3] - B[:, :3, 3], axis=1) * 1000.0
+    flags = np.array([bool(flagged.get(f, False)) for f in ids])
+    return {
+        "frames": len(ids),
+        "rot_median_deg": float(np.median(degrees)),
+        "rot_p90_deg": float(np.percentile(degrees, 90)),
+        "centre_median_mm": float(np.median(mm)),
+        "flagged_share": float(flags.mean()),
+        "unflagged_over_5deg": int(np.sum((degrees > 5.0) & ~flags)),
+        "unflagged_over_10mm": int(np.sum((mm > 10.0) & ~flags)),
+    }
+
+
+@dataclass
+class TrueSurface:
+    """The true surface's samples (object frame), indexed, and which of them some frame observed."""
+
+    index: ShapeIndex
+    observed: np.ndarray  # (N,) bool
+
+    @property
+    def observed_share(self) -> float:
+        return float(self.observed.mean())
+
+
+def observed_samples(points: np.ndarray, mesh, frames) -> np.ndarray:
+    """(N,) bool: which true surface ``points`` (object frame) some frame observed.
+
+    ``frames`` yields (4x4 true pose, (M, 3) measured object points in the camera frame) per frame; the
+    object's own mesh (object frame) decides what each camera sees, so a thin wall's far side does not count.
+    """
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    observed = np.zeros(len(points), bool)
+    for T, measured in frames:  # one ray cast and one tree per frame
+        if len(measured) == 0:
+            continue
+        R, t = T[:3, :3], T[:3, 3]
+        centre = -R.T @ t  # the camera in the object frame
+        ray = points - centre
+        length = np.linalg.norm(ray, axis=1)
+        rays = np.concatenate([np.broadcast_to(centre, ray.shape), ray / length[:, None]], axis=1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        visible = hit > length - 0.001  # nothing of the object in front of the sample
+        near = cKDTree((measured - t) @ R).query(points[visible], distance_upper_bound=OBSERVED_TOLERANCE)[0]
+        observed[np.flatnonzero(visible)[np.isfinite(near)]] = True
+    return observed
+
+
+def true_surface(mesh, frames, threshold: float = FSCORE_THRESHOLD, seed: int = 0) -> TrueSurface:
+    """Sample the true ``mesh`` (spacing at most half ``threshold``), index it and mark what ``frames`` observed
+    (see :func:`observed_samples`)."""
+    points = sample_surface(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
+    return TrueSurface(ShapeIndex(points), observed_samples(points, mesh, frames))
+
+
+def posed_fscore(mesh, poses: dict[str, np.ndarray], surface: TrueSurface, truth_poses: dict[str, np.ndarray],
+                 threshold: float = FSCORE_THRESHOLD, seed: int = 0) -> float:
+    """Median over frames of the F-score at ``threshold`` between the reconstruction posed by ``poses`` and the true
+    mesh posed by ``truth_poses``: computed in the true object frame (the same distances as between the posed meshes),
+    the reconstruction's samples mapped by T_true^-1 T_pose."""
+    points = sample_surface(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
+    scores = []
+    for frame_id, pose in poses.items():  # one transform and one F-score per frame
+        if frame_id in truth_poses:
+            to_true = np.linalg.inv(truth_poses[frame_id]) @ pose
+            scores.append(surface.index.fscore(points @ to_true[:3, :3].T + to_true[:3, 3], threshold).fscore)
+    return float(np.median(scores))
+
+
+def mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
+    """The rigid transform nearest the mean of ``transforms`` (4x4): rotations by their chordal mean (SVD of the sum),
+    translations averaged."""
+    stack = np.stack(transforms)
+    U, _, Vt = np.linalg.svd(stack[:, :3, :3].sum(axis=0))
+    out = np.eye(4)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[:3, 3] = stack[:, :3, 3].mean(axis=0)
+    return out
+
+
+def aligned_points(points: np.ndarray, start: np.ndarray, target: np.ndarray, reach: float = 0.01) -> np.ndarray:
+    """``points`` moved by ``start`` (4x4), then by point-to-point ICP (Open3D) onto ``target`` with correspondences within
+    ``reach`` metres: the reconstruction's shape compared without what remains of its poses' common error."""
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points @ start[:3, :3].T + start[:3, 3]))
+    goal = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+    result = o3d.pipelines.registration.registration_icp(source, goal, reach, np.eye(4),
+                                                         o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+                                                         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30))
+    return np.asarray(source.transform(result.transformation).points)
+
+
+def shape_scores(mesh, poses: dict[str, np.ndarray], surface: TrueSurface, truth_poses: dict[str, np.ndarray],
+                 threshold: float = FSCORE_THRESHOLD, seed: int = 0) -> dict:
+    """The reconstruction's shape against the true surface, aligned (:func:`mean_transform` of its frames' T_true^-1
+    T_pose, then :func:`aligned_points`): F-score, precision and recall at ``threshold``, overall and on the observed
+    surface (recall over the observed true samples; precision over the reconstruction's samples whose nearest true
+    sample is an observed one)."""
+    start = mean_transform([np.linalg.inv(truth_poses[f]) @ T for f, T in poses.items() if f in truth_poses])
+    points = sample_surface(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
+    aligned = aligned_points(points, start, surface.index.points)
+    true_hit, hit = surface.index.hits(aligned, threshold)
+    overall = fscore_from_hits(true_hit, hit)
+    nearest = surface.index.tree.query(aligned)[1]
+    on_observed = surface.observed[nearest]
+    observed = fscore_from_hits(true_hit[surface.observed], hit[on_observed]) if surface.observed.any() and on_observed.any() else None
+    return {
+        "shape_f5": overall.fscore,
+        "shape_precision5": overall.precision,
+        "shape_recall5": overall.recall,
+        "observed_f5": None if observed is None else observed.fscore,
+        "observed_precision5": None if observed is None else observed.precision,
+        "observed_recall5": None if observed is None else observed.recall,
+    }
+
+
+def extents_error_mm(extents: np.ndarray, truth_extents: np.ndarray) -> list[float]:
+    """The reconstruction's box sides minus the true ones, along object x, y, z (millimetres)."""
+    return [float(x) for x in (np.asarray(extents, float) - np.asarray(truth_extents, float)) * 1000.0]

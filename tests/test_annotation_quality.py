@@ -1,0 +1,107 @@
+"""The benchmark suite's figures (evaluate.annotation_quality) against cases whose answer is known by construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from evaluate.annotation_quality import (
+    OBSERVED_TOLERANCE,
+    mean_transform,
+    observed_samples,
+    pose_scores,
+    posed_fscore,
+    shape_scores,
+    true_surface,
+)
+
+
+def _pose(rotvec_deg=(0.0, 0.0, 0.0), t=(0.0, 0.0, 0.6)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_pose_scores_measure_known_errors():
+    truth = {f"{i:02d}": _pose((10.0 * i, 5.0, 0.0), (0.01 * i, 0.0, 0.6)) for i in range(10)}
+    poses = {}
+    for i, (f, T) in enumerate(truth.items()):
+        E = np.eye(4)
+        E[:3, :3] = Rotation.from_rotvec(np.radians([1.1 * i, 0.0, 0.0])).as_matrix()  # 1.1 i degrees about the object's x
+        E[:3, 3] = [0.0, 0.0, 0.001 * i]  # and i mm along the camera's z
+        poses[f] = np.block([[T[:3, :3] @ E[:3, :3], (T[:3, 3] + E[:3, 3])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+    flagged = {"09": True}
+    scores = pose_scores(poses, flagged, truth, "none")
+    assert scores["rot_median_deg"] == pytest.approx(4.95) and scores["rot_p90_deg"] == pytest.approx(8.91)
+    assert scores["centre_median_mm"] == pytest.approx(4.5)
+    assert scores["flagged_share"] == pytest.approx(0.1)
+    assert scores["unflagged_over_5deg"] == 4  # frames 5 to 8 (9 is flagged)
+    assert scores["unflagged_over_10mm"] == 0
+    # a turn about the object's own y axis is no error for symmetry y
+    spun = {f: T @ np.block([[Rotation.from_rotvec([0, 0.7, 0]).as_matrix(), np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])
+            for f, T in truth.items()}
+    assert pose_scores(spun, {}, truth, "y")["rot_p90_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert pose_scores(spun, {}, truth, "none")["rot_median_deg"] == pytest.approx(np.degrees(0.7))
+
+
+def _cube(side=0.1) -> trimesh.Trimesh:
+    return trimesh.creation.box(extents=[side, side, side])
+
+
+def test_observed_samples_are_the_faces_a_camera_measured():
+    cube = _cube()
+    points = trimesh.sample.sample_surface(cube, 6000, seed=0)[0]
+    T = _pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.6))  # the camera looks at the object's -z face
+    front = np.abs(points[:, 2] + 0.05) < 1e-9
+    dense = trimesh.sample.sample_surface(cube, 60000, seed=1)[0]
+    measured = dense[np.abs(dense[:, 2] + 0.05) < 1e-9] + T[:3, 3]  # the face measured about every 1 mm, camera frame
+    observed = observed_samples(points, cube, [(T, measured)])
+    assert observed[front].mean() > 0.99
+    # of the other faces, only a strip along the measured face's edges lies within the tolerance of a measurement
+    assert np.all(points[observed & ~front][:, 2] < -0.05 + OBSERVED_TOLERANCE) and (observed & ~front).sum() < 0.05 * (~front).sum()
+    # the back face (+z) lies within reach of nothing; a measured point 1.5 tolerances off the surface observes nothing
+    off = observed_samples(points, cube, [(T, measured + [0.0, 0.0, -1.5 * OBSERVED_TOLERANCE])])
+    assert not off.any()
+
+
+def test_observed_needs_the_camera_to_see_the_sample():
+    """A measured point inside a thin wall's reach does not make the wall's far side observed."""
+    wall = trimesh.creation.box(extents=[0.1, 0.1, 0.003])  # 3 mm thick: both faces within the tolerance of a point
+    points, _ = trimesh.sample.sample_surface(wall, 4000, seed=1)
+    T = _pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.5))
+    near = np.abs(points[:, 2] + 0.0015) < 1e-9
+    observed = observed_samples(points, wall, [(T, points[near] + T[:3, 3])])
+    far = np.abs(points[:, 2] - 0.0015) < 1e-9
+    assert observed[near].mean() > 0.99 and not observed[far].any()
+
+
+def test_posed_and_shape_scores():
+    cube = _cube()
+    # six views, each turning one face of the cube to the camera (-z of the camera frame)
+    turns = [(0, 0, 0), (0, 180, 0), (0, 90, 0), (0, -90, 0), (90, 0, 0), (-90, 0, 0)]
+    truth_poses = {f"{i}": _pose(turn, (0.0, 0.0, 0.7)) for i, turn in enumerate(turns)}
+    every_face = [(T, (np.asarray(trimesh.sample.sample_surface(cube, 20000, seed=2)[0]) @ T[:3, :3].T) + T[:3, 3]) for T in truth_poses.values()]
+    surface = true_surface(cube, every_face)
+    assert surface.observed_share == pytest.approx(1.0, abs=0.01)
+    # the true mesh at the true poses
+    assert posed_fscore(cube, truth_poses, surface, truth_poses) == pytest.approx(1.0, abs=0.01)
+    perfect = shape_scores(cube, truth_poses, surface, truth_poses)
+    assert perfect["shape_f5"] == pytest.approx(1.0, abs=0.01) and perfect["observed_recall5"] == pytest.approx(1.0, abs=0.01)
+    # every pose 1 cm off along each camera axis: each face 1 cm off, the posed figure falls, the shape (aligned) does not
+    shifted = {f: T + np.pad(np.array([[0.01], [0.01], [0.01]]), ((0, 1), (3, 0))) for f, T in truth_poses.items()}
+    assert posed_fscore(cube, shifted, surface, truth_poses) < 0.15  # (only near the edges do shifted faces pass within 5 mm)
+    assert shape_scores(cube, shifted, surface, truth_poses)["shape_f5"] == pytest.approx(1.0, abs=0.01)
+    # a cube 2 cm larger: its faces lie 1 cm off the true ones, nothing within 5 mm
+    bigger = shape_scores(_cube(0.12), truth_poses, surface, truth_poses)
+    assert bigger["shape_f5"] < 0.2
+
+
+def test_mean_transform():
+    a, b = _pose((0.0, 0.0, 10.0), (0.1, 0.0, 0.5)), _pose((0.0, 0.0, -10.0), (0.3, 0.0, 0.5))
+    mean = mean_transform([a, b])
+    np.testing.assert_allclose(mean[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(mean[:3, 3], [0.2, 0.0, 0.5])
+    np.testing.assert_allclose(mean_transform([a, a, a]), a, atol=1e-12)

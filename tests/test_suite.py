@@ -1,0 +1,106 @@
+"""The benchmark suite's file (benchmarks/suite.yaml) and its runners, end to end on a tiny suite."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from suite.spec import Entry, load_suite, resolve  # noqa: E402
+
+from sequences.errors import InputError  # noqa: E402
+
+
+def test_the_suite_has_two_disjoint_splits_of_enough_sequences():
+    suite = load_suite()
+    dev, held = suite.split("dev"), suite.split("heldout")
+    assert len(dev) + len(held) >= 30 and len(dev) >= 15 and len(held) >= 15
+    assert not {e.seed for e in dev} & {e.seed for e in held}
+    real = lambda entries: {e.shape for e in entries if not e.shape.startswith("procedural:")}  # noqa: E731
+    assert not real(dev) & real(held)
+    for entries in (dev, held):  # each split covers the ways of making a sequence
+        assert {e.coverage for e in entries} == {"every_side", "key_orientations", "table"}
+        assert {e.texture for e in entries} == {"pattern", "label", "plain"}
+        assert {e.shape.partition(":")[0] for e in entries} == {"procedural", "redwood75", "nocs", "ycb"}
+        assert {"square_bowl", "flat_bottle"} & {e.shape.partition(":")[2] for e in entries} or \
+            {"oval_bowl", "fluted_bottle"} & {e.shape.partition(":")[2] for e in entries}
+    assert {s.name for s in suite.settings} == {"boxes4", "boxes3"}
+    assert len(suite.split("dev", quick=True)) == 4 and len(suite.split("heldout", quick=True)) == 4
+
+
+def test_every_entry_resolves_to_a_real_file(redwood75_dir):
+    from conftest import SHARED
+
+    if not (SHARED / "ycbv_real" / "models").is_dir() or not (SHARED / "nocs_real_sample").is_dir():
+        pytest.skip("../shared's meshes are absent")
+    suite = load_suite()
+    keys = set()
+    for entry in suite.entries:
+        recipe = resolve(entry, 100)
+        assert recipe.mesh is None or Path(recipe.mesh).is_file()
+        assert (recipe.shape is None) != (recipe.mesh is None)
+        keys.add(recipe.key())
+    assert len(keys) == len(suite.entries)  # every sequence its own cache folder
+
+
+@pytest.mark.parametrize("change, problem", [
+    ({"split": "test"}, "split"),
+    ({"shape": "procedural:square_bowl", "category": "mug"}, "not a mug"),
+    ({"keys": "redwood75:00015"}, "key_orientations needs keys"),
+    ({"shape": "thingiverse:123"}, "shape must be"),
+    ({"colour": "red"}, "unknown keys"),
+])
+def test_bad_entries_are_refused(tmp_path, change, problem):
+    entry = {"name": "a", "split": "dev", "category": "bowl", "shape": "procedural:bowl", "coverage": "every_side", "texture": "plain", "seed": 1}
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump({"sequences": [{**entry, **change}]}))
+    with pytest.raises(InputError, match=problem):
+        load_suite(path)
+
+
+def test_a_seed_in_both_splits_is_refused(tmp_path):
+    entries = [{"name": n, "split": s, "category": "bowl", "shape": "procedural:bowl", "seed": 7} for n, s in (("a", "dev"), ("b", "heldout"))]
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump({"sequences": entries}))
+    with pytest.raises(InputError, match="must not share a seed"):
+        load_suite(path)
+
+
+def test_recipe_key_follows_every_option():
+    base = Entry("a", "dev", "bowl", "procedural:square_bowl", seed=3)
+    keys = {resolve(e, 40).key() for e in (base, Entry("a", "dev", "bowl", "procedural:square_bowl", seed=4),
+                                              Entry("a", "dev", "bowl", "procedural:square_bowl", seed=3, texture="plain"),
+                                              Entry("a", "dev", "bowl", "procedural:square_bowl", seed=3, sensor="ideal"))}
+    assert len(keys) == 4 and resolve(base, 40).key() != resolve(base, 41).key()
+
+
+@pytest.mark.slow
+def test_run_suite_end_to_end(tmp_path):
+    """A one-sequence suite through the command: generated, tracked in one setting, reconstructed, scored, tabled."""
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump({
+        "frames": 24,
+        "settings": {"boxes4": {"boxes": 4, "degrees": 3.0, "metres": 0.005, "extents": 0.08}},
+        "sequences": [{"name": "tiny-can", "split": "dev", "category": "can", "shape": "procedural:can", "coverage": "every_side",
+                       "texture": "label", "seed": 5}],
+    }))
+    out = tmp_path / "out"
+    result = subprocess.run([sys.executable, str(REPO / "benchmarks" / "run_suite.py"), "--split", "dev", "--suite", str(path),
+                             "--data", str(tmp_path / "data"), "--out", str(out), "--workers", "1"],
+                            cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert [r["setting"] for r in rows] == ["truth", "boxes4"]
+    truth, tracked = rows
+    assert 0.5 < truth["observed_share_truth"] <= 1.0
+    assert truth["posed_f5"] > 0.8 and truth["shape_f5"] > 0.8  # a procedural can from its true poses
+    assert tracked["rot_median_deg"] < 5 and tracked["centre_median_mm"] < 10 and tracked["ms_per_frame"] > 0
+    table = (out / "README.md").read_text()
+    assert "| tiny-can | boxes4 |" in table and "| boxes4 | **all** | 1 |" in table
