@@ -87,6 +87,8 @@ class App:
         self.state.on_error = self.say
         server.on_client_connect(self._on_connect)
         self.redraw("frame")
+        if self.state.read_only:
+            self.say(self.state.read_only)
 
     # --- helpers -------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -209,6 +211,7 @@ class App:
         self.tracking.close()
         self.model.close()
         self.cache.close()
+        self.state.close()
 
 
 def resolve_sequence(path: str | None) -> Path:
@@ -239,6 +242,8 @@ def serve(args) -> int:
         raise
     host = "127.0.0.1" if args.host in ("0.0.0.0", "") else args.host
     print(f"annotate: serving {sequence.root} ({len(sequence)} frames), document {app.state.path}", flush=True)
+    if app.state.read_only:
+        print(f"annotate: {app.state.read_only}", flush=True)
     print(f"annotate: open http://{host}:{server.get_port()}", flush=True)
     try:
         while True:

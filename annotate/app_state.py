@@ -2,8 +2,13 @@
 
 One ``AppState`` lives in the server; all clients read and change it, so every tab sees the same
 document and frame. Every change goes through :meth:`AppState.edit` (or undo/redo), which keeps
-the previous document on the undo stack, saves the document atomically (previous file kept as
-``.bak``) and tells the listeners (the scene and the panels) to redraw.
+the previous document on the undo stack, saves the document atomically (the document as the session
+found it kept as ``.orig`` at the first save, the previous file as ``.bak``) and tells the listeners
+(the scene and the panels) to redraw.
+
+The session holds the document's lock (:mod:`sequences.lock`) while it lives: a second server, or an
+``annotate --track`` run, on the same document finds it taken. A session that finds it taken opens the
+document read-only and says so; a save never overwrites a change another program made to the file.
 
 Poses are object to camera (p_cam = R p_obj + t), metres, quaternions x, y, z, w.
 """
@@ -21,10 +26,12 @@ from sequences.annotation import (
     FramePose,
     annotation_path,
     default_symmetry,
-    load_annotation,
-    save_annotation,
+    load_checked,
+    save_checked,
 )
+from sequences.atomic import write_bytes_atomic
 from sequences.errors import InputError
+from sequences.lock import DocumentLock
 from sequences.reader import Sequence
 
 #: Box side length (m) of a new document's first box.
@@ -95,16 +102,27 @@ class AppState:
         self.sequence = sequence
         self.path = annotation_path(sequence.root, document)
         self.lock = threading.RLock()
+        if not self.path.parent.exists():
+            raise InputError(self.path, "folder of the annotation document does not exist")
+        self.document_lock = DocumentLock(self.path, "annotate (browser)")
+        #: why this session cannot write the document (None: it can): the lock is another's, or the folder is read-only
+        self.read_only: str | None = None
+        try:
+            self.document_lock.acquire()
+        except InputError as error:
+            self.read_only = f"Read-only: {error}"
+        self._original: bytes | None = None  # the document as the session found it (.orig at the first save)
         if self.path.exists():
-            self.annotation = load_annotation(self.path, default_sequence=sequence.name)
+            self.annotation, self._fingerprint = load_checked(self.path, default_sequence=sequence.name)
+            self._original = self.path.read_bytes()
             unknown = sorted(set(self.annotation.frames) - set(sequence.ids))
             if unknown:
+                self.document_lock.release()
                 raise InputError(self.path, f"frames {unknown[:3]} are not in the sequence {sequence.root}")
             self.is_new = False
         else:
-            if not self.path.parent.exists():
-                raise InputError(self.path, "folder of the annotation document does not exist")
             self.annotation = new_document(sequence, category)
+            self._fingerprint = None
             self.is_new = True  # nothing on disk until the first change
         self._default_position = default_position(sequence, 0)
         self.frame = 0
@@ -254,6 +272,14 @@ class AppState:
             self.on_error(f"Not saved ({error}); {self.path} is unchanged.")
 
     def _save(self) -> None:
-        save_annotation(self.annotation, self.path)
+        if self.read_only:
+            raise InputError(self.path, self.read_only.removeprefix("Read-only: "))
+        if self.saves == 0 and self._original is not None:
+            write_bytes_atomic(self.path.with_name(self.path.name + ".orig"), self._original)
+        self._fingerprint = save_checked(self.annotation, self.path, self._fingerprint)
         self.saves += 1
         self.is_new = False
+
+    def close(self) -> None:
+        """End the session: give the document's lock up."""
+        self.document_lock.release()

@@ -7,8 +7,9 @@ import time
 
 import numpy as np
 
-from sequences.annotation import annotation_path, load_annotation, save_annotation
+from sequences.annotation import annotation_path, load_checked, save_checked
 from sequences.errors import InputError
+from sequences.lock import DocumentLock
 from sequences.reader import open_sequence
 
 
@@ -16,12 +17,10 @@ def run_track(args) -> int:
     """Headless tracking (``args.sequence``, ``args.annotation``); returns the exit code.
 
     Bad input (no sequence folder, a malformed or missing document, no manual frame) raises
-    InputError, which the command line turns into a one-line error and exit code 2.
+    InputError, which the command line turns into a one-line error and exit code 2. The document is locked
+    from its reading to its writing (a second writer is refused), and is not overwritten if another program
+    changed it meanwhile.
     """
-    from tqdm import tqdm
-
-    from .tracking import TrackingConfig, track_sequence
-
     sigma = getattr(args, "placement_sigma", None)
     if sigma is not None and (not all(np.isfinite(sigma)) or min(sigma) <= 0):
         raise InputError(None, f"--placement-sigma must be two positive numbers (deg, mm), got {sigma[0]:g} {sigma[1]:g}")
@@ -32,7 +31,17 @@ def run_track(args) -> int:
         root = sample_sequence()
     sequence = open_sequence(root)
     path = annotation_path(sequence.root, getattr(args, "annotation", None))
-    annotation = load_annotation(path, default_sequence=sequence.name)
+    with DocumentLock(path, "annotate --track"):  # one writer per document, from the read to the write
+        return _track_locked(args, sequence, path, sigma)
+
+
+def _track_locked(args, sequence, path, sigma) -> int:
+    """Track and write the document, its lock held."""
+    from tqdm import tqdm
+
+    from .tracking import TrackingConfig, track_sequence
+
+    annotation, read_as = load_checked(path, default_sequence=sequence.name)
     if not annotation.frames:
         raise InputError(path, "no frame has a box: place a box in two to four frames first (annotate SEQ)")
     unknown = sorted(set(annotation.frames) - set(sequence.ids))
@@ -59,7 +68,7 @@ def run_track(args) -> int:
         raise InputError(path, str(error)) from error
     finally:
         bar.close()
-    save_annotation(tracked, path)
+    save_checked(tracked, path, read_as)
     flagged = [f for f, pose in tracked.frames.items() if pose.extra.get("flagged")]
     seconds = time.perf_counter() - start
     print(

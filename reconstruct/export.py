@@ -12,16 +12,15 @@ replaced, the rest kept):
 - ``OUT/masks/<sequence>/<frame id>.png``: instance masks, uint8 0 / 255 (see :mod:`reconstruct.masks`).
 - ``OUT/reports/<sequence>.json`` and ``OUT/reports/<sequence>.png``: report and preview.
 
-Every file is written atomically (temporary name, then rename); ``annotations.json`` last, so a
-sequence is listed only once its mesh is in place.
+A sequence's files are written as one unit (:mod:`reconstruct.transaction`): staged beside OUT, swapped in
+by renames with the previous files kept until ``annotations.json``, written last, commits them; a killed
+export is rolled back (or finished) by the next export into OUT. Every path is built from plain names and
+checked to stay inside OUT (:mod:`sequences.names`).
 """
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +28,14 @@ import trimesh
 
 from evaluate.geometry import matrix_to_quat, shapenet_to_raw_extents, shapenet_to_raw_points, shapenet_to_raw_pose
 from sequences.annotation import Annotation
-from sequences.atomic import write_bytes_atomic, write_text_atomic
 from sequences.errors import InputError
+from sequences.names import check_name
 from sequences.reader import Sequence
 
 from .masks import mask_png_bytes, render_masks
 from .pipeline import Reconstruction
 from .report import preview_png_bytes, report_json
+from .transaction import ExportTransaction, OutLock, recover
 
 ANNOTATIONS = "annotations.json"
 
@@ -85,45 +85,25 @@ def read_annotations(path: Path) -> dict:
     return data
 
 
-def _replace_folder(folder: Path, files: dict[str, bytes]) -> None:
-    """Write ``files`` into a fresh temporary folder, then swap it in for ``folder``."""
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
-        for name, data in files.items():
-            (tmp / name).write_bytes(data)
-        old = None
-        if folder.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
-            os.rmdir(old)
-            os.replace(folder, old)
-        os.replace(tmp, folder)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
 def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotation: Annotation, out_dir: str | Path, masks: bool = True) -> Path:
     """Write one reconstruction into ``out_dir`` (see the module docstring); returns ``annotations.json``'s path.
 
-    Everything is computed first (masks rendered, existing ``annotations.json`` read and checked),
-    then written; a failure before the writes leaves ``out_dir`` untouched.
+    Everything is computed first (masks rendered, existing ``annotations.json`` read and checked), then
+    staged and swapped in as one unit; a failure or a kill leaves ``out_dir``'s previous export whole.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(out_dir, "output path exists and is not a folder")
+    name = check_name(reconstruction.sequence, "sequence name", out_dir)
     annotations_path = out_dir / ANNOTATIONS
-    existing = read_annotations(annotations_path)
-    name = reconstruction.sequence
+    read_annotations(annotations_path)  # refuse a broken annotations.json before any work
     entry = sequence_entry(reconstruction, sequence)
     obj = obj_text(raw_mesh(reconstruction.mesh), name)
     mask_files: dict[str, bytes] = {}
     frame_masks: dict[str, np.ndarray] = {}
     if masks:
         frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
-        mask_files = {f"{frame_id}.png": mask_png_bytes(m) for frame_id, m in frame_masks.items()}
+        mask_files = {f"{check_name(frame_id, 'frame id', out_dir)}.png": mask_png_bytes(m) for frame_id, m in frame_masks.items()}
     report = dict(reconstruction.report)
     report["masks"] = f"masks/{name}/" if masks else None
     report["mesh_file"] = f"{name}.obj"
@@ -131,13 +111,22 @@ def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotatio
         report["warning"] = "camera differs from REDWOOD75's (fx = fy = 525, cx = 319.5, cy = 239.5), which cpas_toolbox assumes"
     preview = preview_png_bytes(reconstruction, sequence, frame_masks)
 
-    if masks:
-        _replace_folder(out_dir / "masks" / name, mask_files)
-    write_text_atomic(out_dir / entry["mesh"], obj)
-    write_text_atomic(out_dir / "reports" / f"{name}.json", report_json(report))
-    write_bytes_atomic(out_dir / "reports" / f"{name}.png", preview)
-    # re-read just before the merge: another sequence may have been added meanwhile
-    merged = read_annotations(annotations_path) or existing
-    merged[name] = entry
-    write_text_atomic(annotations_path, json.dumps(merged, indent=1))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with OutLock(out_dir):
+        recover(out_dir)
+        transaction = ExportTransaction(out_dir, name)
+        try:
+            for file_name, data in mask_files.items():
+                transaction.stage(f"masks/{name}/{file_name}", data)
+            transaction.stage(entry["mesh"], obj.encode("utf-8"))
+            transaction.stage(f"reports/{name}.json", report_json(report).encode("utf-8"))
+            transaction.stage(f"reports/{name}.png", preview)
+            # read under the lock: another sequence may have been added meanwhile
+            merged = read_annotations(annotations_path)
+            merged[name] = entry
+            transaction.commit(merged)
+        except BaseException:
+            transaction.abort()
+            recover(out_dir)  # a failed swap is rolled back now, not at the next run
+            raise
     return annotations_path

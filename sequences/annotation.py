@@ -9,7 +9,9 @@ Unknown keys, at the top level and per frame, are kept on save.
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +22,7 @@ import yaml
 from .atomic import write_text_atomic
 from .documents import load_document
 from .errors import InputError
+from .names import check_name, safe_name
 
 CATEGORIES = ("bottle", "bowl", "mug", "can", "camera", "laptop", "other")
 SYMMETRIES = ("none", "y")
@@ -130,7 +133,14 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
         data = {}
     if not isinstance(data, dict):
         raise InputError(path, "annotation document must be a mapping (sequence, category, symmetry, extents, frames)")
-    sequence = str(data.get("sequence", default_sequence) or default_sequence)
+    # the name becomes file names (OUT/<sequence>.obj): a document's own must be a plain name; a folder's is made one
+    named = data.get("sequence")
+    if named in (None, ""):
+        sequence = safe_name(str(default_sequence)) if default_sequence else ""
+    elif not isinstance(named, str):  # YAML reads an unquoted 00015 as a number (13: octal)
+        raise InputError(path, f"sequence name must be text, got the number {named!r}: quote it ('00015')")
+    else:
+        sequence = check_name(named, "sequence name", path)
     category = data.get("category", "other")
     if category not in CATEGORIES:
         raise InputError(path, f"category {category!r} is not one of {', '.join(CATEGORIES)}")
@@ -147,7 +157,7 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
         raise InputError(path, "frames must be a mapping from frame id to pose")
     frames: dict[str, FramePose] = {}
     for key, entry in frames_data.items():
-        frame_id = str(key)
+        frame_id = check_name(str(key), "frame id", path)
         where = f"frame {frame_id}"
         if not isinstance(entry, dict):
             raise InputError(path, f"{where} must be a mapping with position and orientation")
@@ -191,10 +201,46 @@ def load_annotation(path: str | Path, default_sequence: str | None = None) -> An
     return annotation_from_dict(data, path, default_sequence)
 
 
+def document_text(annotation: Annotation) -> str:
+    """The document as the YAML text ``save_annotation`` writes."""
+    return yaml.safe_dump(annotation.to_dict(), sort_keys=False, default_flow_style=None, width=120)
+
+
 def save_annotation(annotation: Annotation, path: str | Path, backup: bool = True) -> Path:
     """Write the document atomically (temporary file, fsync, rename); keep the previous one as ``.bak``."""
-    text = yaml.safe_dump(annotation.to_dict(), sort_keys=False, default_flow_style=None, width=120)
-    return write_text_atomic(path, text, backup=backup)
+    return write_text_atomic(path, document_text(annotation), backup=backup)
+
+
+def save_checked(annotation: Annotation, path: str | Path, expected: str | None, backup: bool = True) -> str:
+    """Save the document unless the file on disk changed since it was read (its fingerprint then was ``expected``,
+    None: it did not exist); return the new file's fingerprint.
+
+    A change another program made is never overwritten: this version goes beside it, to
+    ``<name>.refused-<time>.yaml``, and InputError names both.
+    """
+    from .lock import check_unchanged
+
+    path = Path(path)
+    text = document_text(annotation)
+    try:
+        check_unchanged(path, expected)
+    except InputError as error:
+        kept = path.with_name(f"{path.stem}.refused-{time.strftime('%Y%m%d-%H%M%S')}{path.suffix or '.yaml'}")
+        write_text_atomic(kept, text)
+        raise InputError(path, f"{error.problem}; this session's version is in {kept.name}") from None
+    write_text_atomic(path, text, backup=backup)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def load_checked(path: str | Path, default_sequence: str | None = None) -> tuple[Annotation, str]:
+    """The document and the fingerprint of the bytes it was read from (for :func:`save_checked`)."""
+    from .lock import fingerprint
+
+    before = fingerprint(path)
+    annotation = load_annotation(path, default_sequence)
+    if fingerprint(path) != before:
+        raise InputError(path, "changed while it was being read; try again")
+    return annotation, before
 
 
 def annotation_path(sequence_root: str | Path, override: str | Path | None = None) -> Path:

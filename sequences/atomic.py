@@ -1,6 +1,7 @@
 """Atomic file writes: write to a temporary name in the same folder, fsync, rename.
 
-A kill at any moment leaves either the old file or the new one, never a torn one.
+A kill at any moment leaves either the old file or the new one, never a torn one. Files get the mode a plain
+``open()`` would give them (0666 less the user's umask), not the 0600 of a temporary file.
 """
 
 from __future__ import annotations
@@ -11,12 +12,23 @@ import tempfile
 from pathlib import Path
 
 
+def _read_umask() -> int:
+    mask = os.umask(0o022)  # reading the umask sets it: put it back at once (before any thread starts writing)
+    os.umask(mask)
+    return mask
+
+
+#: The mode of new files (0666 less the umask), read once at import.
+FILE_MODE = 0o666 & ~_read_umask()
+
+
 def write_bytes_atomic(path: str | Path, data: bytes, backup: bool = False) -> Path:
     """Write ``data`` to ``path`` atomically; with ``backup`` keep the previous version as ``path.bak``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, FILE_MODE)
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()
@@ -55,5 +67,6 @@ def temporary_sibling(path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.fchmod(fd, FILE_MODE)
     os.close(fd)
     return Path(tmp)

@@ -17,6 +17,7 @@ import numpy as np
 from .camera import Camera
 from .errors import InputError
 from .images import read_color, read_depth_raw
+from .names import safe_name
 
 COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
 DEPTH_SUFFIXES = (".png",)
@@ -137,7 +138,7 @@ class Sequence:
     def _setup(self, root: Path, frames: list[FrameFiles], camera: Camera, layout: str,
                unpaired_color: list[Path] | None = None, unpaired_depth: list[Path] | None = None) -> None:
         self.root = root
-        self.name = root.resolve().name
+        self.name = safe_name(root.resolve().name)  # file names are built from it: a plain name
         self.camera = camera
         self.layout = layout
         self.frames: list[FrameFiles] = frames

@@ -22,6 +22,7 @@ from evaluate.geometry import matrix_to_quat
 from sequences.axes import SHAPENET_FROM_NOCS
 from sequences.camera import Camera
 from sequences.errors import InputError
+from sequences.names import check_name
 
 from .base import Dataset, load_mesh_file
 from .frames import read_instance_ids
@@ -90,7 +91,7 @@ def read_meta(path: Path) -> dict[int, tuple[int, str]]:
             continue
         if len(parts) != 3 or not parts[0].isdigit() or not parts[1].isdigit():
             raise InputError(path, f"line {number}: expected '<instance id> <class id> <model name>'")
-        rows[int(parts[0])] = (int(parts[1]), parts[2])
+        rows[int(parts[0])] = (int(parts[1]), check_name(parts[2], f"line {number}: model name", path))  # a name, not a path
     return rows
 
 

@@ -27,6 +27,7 @@ from sequences.annotation import default_symmetry
 from sequences.camera import Camera
 from sequences.documents import load_document
 from sequences.errors import InputError
+from sequences.names import check_name
 
 from .base import Dataset, load_mesh_file
 from .frames import read_instance_ids
@@ -74,7 +75,8 @@ class Redwood75Dataset(Dataset):
         samples: list[Sample] = []
         self.missing_meshes: list[str] = []  # sequences whose mesh file is absent (shape metrics skipped)
         for sequence, entry in data.items():
-            samples.extend(self._parse_sequence(path, str(sequence), entry, root, frames_root))
+            # names, never paths: they build the paths of frames, masks and meshes read below
+            samples.extend(self._parse_sequence(path, check_name(str(sequence), "sequence name", path), entry, root, frames_root))
         super().__init__(samples, root)
         self.name = root.name or self.name
 
@@ -117,6 +119,8 @@ class Redwood75Dataset(Dataset):
             rgb, depth = ann["rgb_file"], ann["depth_file"]
             if not isinstance(rgb, str) or not isinstance(depth, str):
                 raise InputError(path, f"{at}: rgb_file and depth_file must be strings")
+            check_name(rgb, f"{at}: rgb_file", path)
+            check_name(depth, f"{at}: depth_file", path)
             samples.append(
                 Sample(
                     dataset=self.name,
@@ -145,6 +149,7 @@ class Redwood75Dataset(Dataset):
             return None
         if not isinstance(mesh, str) or not mesh:
             raise InputError(path, f"{where}: mesh must be a file name")
+        check_name(mesh, f"{where}: mesh", path)
         for candidate in (root / mesh, root / "meshes" / mesh):
             if candidate.is_file():
                 return candidate
