@@ -16,6 +16,7 @@ Writes OUT/results.json and OUT/README.md (default ``build/suite/<split>``): a t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -28,7 +29,15 @@ sys.path.insert(0, str(REPO))
 from sequences.errors import run_cli  # noqa: E402
 from sequences.sample import cache_dir  # noqa: E402
 from suite.run import category_table, run_sequence, sequence_table  # noqa: E402
-from suite.spec import SHARED, SPLITS, SUITE, build, load_suite  # noqa: E402
+from suite.spec import SHARED, SPLITS, SUITE, Setting, build, load_suite  # noqa: E402
+
+
+def markdown(split: str, quick: bool, sequences: int, frames: int, settings, rows: list[dict]) -> str:
+    """The run's Markdown: the settings, a table per category and one per sequence."""
+    described = "".join(f", {s.name} ({s.boxes} boxes off by up to {s.degrees:g} deg / {1000 * s.metres:g} mm / {100 * s.extents:g} %)" for s in settings)
+    return (f"# Benchmark suite, {split} split{' (quick)' if quick else ''}\n\n{sequences} sequences of {frames} frames; settings: truth "
+            f"(reconstruction from the true poses){described}.\n\n## Per category (medians; counts summed)\n\n{category_table(rows)}\n\n"
+            f"## Per sequence\n\n{sequence_table(rows)}\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +51,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="where to write results.json and README.md (default build/suite/<split>[-quick])")
     parser.add_argument("--shared", default=str(SHARED), help="../shared/data (the real meshes and REDWOOD75's orientations)")
     parser.add_argument("--workers", type=int, help="tracking worker processes (default: the tracker's)")
+    parser.add_argument("--tables", metavar="RESULTS", help="print the tables of an earlier run's results.json (runs nothing)")
     args = parser.parse_args(argv)
+    if args.tables:
+        data = json.loads(Path(args.tables).read_text())
+        settings = [Setting(**values) for values in data.get("settings", [])]
+        print(markdown(data["split"], data["quick"], len({r["sequence"] for r in data["rows"]}), data["frames"], settings, data["rows"]))
+        return 0
     suite = load_suite(args.suite)
     entries = suite.split(args.split, args.quick)
     if args.only:
@@ -69,11 +84,9 @@ def main(argv: list[str] | None = None) -> int:
         summary = ", ".join(f"{r['setting']}: " + ("ok" if not r["goals_missed"] and "reconstruct_error" not in r else f"{len(r['goals_missed'])} missed")
                             for r in new)
         print(f"[{k}/{len(entries)}] {entry.name}: {summary} ({built:.0f} s to build, {time.perf_counter() - t0:.0f} s in all)", flush=True)
-        (out / "results.json").write_text(json.dumps({"split": args.split, "quick": args.quick, "frames": frames, "rows": rows}, indent=1))
-    tables = (f"# Benchmark suite, {args.split} split{' (quick)' if args.quick else ''}\n\n{len(entries)} sequences of {frames} frames; "
-              f"settings: truth (reconstruction from the true poses), "
-              + ", ".join(f"{s.name} ({s.boxes} boxes off by up to {s.degrees:g} deg / {1000 * s.metres:g} mm / {100 * s.extents:g} %)" for s in settings)
-              + f".\n\n## Per category (medians; counts summed)\n\n{category_table(rows)}\n\n## Per sequence\n\n{sequence_table(rows)}\n")
+        (out / "results.json").write_text(json.dumps({"split": args.split, "quick": args.quick, "frames": frames,
+                                                      "settings": [dataclasses.asdict(s) for s in settings], "rows": rows}, indent=1))
+    tables = markdown(args.split, args.quick, len(entries), frames, settings, rows)
     (out / "README.md").write_text(tables)
     print(tables)
     print(f"{len(entries)} sequences in {time.perf_counter() - started:.0f} s; wrote {out / 'results.json'} and {out / 'README.md'}")

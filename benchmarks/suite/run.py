@@ -143,7 +143,7 @@ def sequence_table(rows: list[dict]) -> str:
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for row in rows:
         cells = [_cell(row.get(k), f) for k, _, f in COLUMNS]
-        missed = "; ".join(row.get("goals_missed", [])) or ("reconstruct failed: " + row["reconstruct_error"] if "reconstruct_error" in row else "")
+        missed = "; ".join(row.get("goals_missed", []) + (["reconstruct failed: " + row["reconstruct_error"]] if "reconstruct_error" in row else []))
         lines.append(f"| {row['sequence']} | {row['setting']} | {row['observed_share_truth']:.0%} | " + " | ".join(cells) + f" | {missed} |")
     return "\n".join(lines)
 

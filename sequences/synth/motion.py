@@ -338,7 +338,9 @@ class GraspPlanner:
         radius = np.array([FINGER_RADIUS] * 4 + [THUMB_RADIUS])[:, None, None]
         points_obj = chains.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
         near, near_n = self.closest(points_obj)
-        near_n = _unit(near_n)
+        # a scanned mesh's zero-area triangles have no normal: there, the way from the surface to the joint
+        length = np.linalg.norm(near_n, axis=1, keepdims=True)
+        near_n = np.where(length > 1e-12, near_n / np.maximum(length, 1e-12), _unit(points_obj - near + 1e-12))
         # keep the outward side: a normal facing away from the query point belongs to the far wall
         facing = np.sign(np.einsum("ij,ij->i", points_obj - near, near_n))
         facing[facing == 0] = 1.0
