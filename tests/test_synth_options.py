@@ -342,3 +342,22 @@ def test_ycb_points_become_a_mesh(tmp_path):
     centred = (points - (points.min(0) + points.max(0)) / 2) @ np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]).T
     distance = cKDTree(trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]).query(centred)[0]
     assert np.percentile(distance, 90) < 0.003  # the surface passes through the model's points
+
+
+def test_an_open_scan_is_closed():
+    """A can scanned standing on a table (no bottom) becomes a closed solid: its volume, its sides kept."""
+    from sequences.synth.shapes import closed_mesh
+
+    can = trimesh.creation.cylinder(radius=0.035, height=0.12, sections=64)
+    bottom = can.face_normals[:, 2] < -0.99
+    open_can = trimesh.Trimesh(can.vertices, can.faces[~bottom], process=True)
+    assert not open_can.is_watertight
+    closed = closed_mesh(open_can)
+    assert closed.is_watertight
+    assert closed.volume == pytest.approx(np.pi * 0.035**2 * 0.12, rel=0.05)
+    np.testing.assert_allclose(closed.extents, [0.07, 0.07, 0.12], atol=0.002)
+    from scipy.spatial import cKDTree
+
+    side = trimesh.sample.sample_surface(can, 5000, seed=0)[0]
+    side = side[np.abs(side[:, 2]) < 0.05]
+    assert np.percentile(cKDTree(closed.vertices).query(side)[0], 95) < 0.0015  # the walls where they were

@@ -214,6 +214,48 @@ def mesh_from_points(points: np.ndarray) -> trimesh.Trimesh:
     return trimesh.convex.convex_hull(points)
 
 
+#: Voxel (metres) and ray directions of :func:`closed_mesh`.
+CLOSING_VOXEL = 0.0015
+CLOSING_DIRECTIONS = 48
+
+
+def _sphere_directions(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+def closed_mesh(mesh: trimesh.Trimesh, voxel: float = CLOSING_VOXEL, directions: int = CLOSING_DIRECTIONS) -> trimesh.Trimesh:
+    """A closed solid's surface for a scan that is not watertight (NOCS's scans are open where they stood on the table).
+
+    Each point of a grid votes over ``directions`` rays: inside where the first face a ray meets faces away from
+    it (the ray leaves the object). The share of such rays approximates the generalised winding number: about 1
+    inside, 0 outside, and a smooth fall to 0.5 across a hole, so the 0.5 level (marching cubes) caps holes and
+    seals cracks. Needs faces wound outward, as scans are.
+    """
+    import open3d as o3d
+    from scipy import ndimage
+    from skimage import measure
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    low = mesh.bounds[0] - 3 * voxel
+    shape = np.ceil((mesh.bounds[1] + 3 * voxel - low) / voxel).astype(int) + 1
+    points = np.stack(np.meshgrid(*[low[a] + voxel * np.arange(shape[a]) for a in range(3)], indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    leaving = np.zeros(len(points), np.float32)
+    for direction in _sphere_directions(directions).astype(np.float32):  # one cast of every grid point per direction
+        answer = scene.cast_rays(o3d.core.Tensor(np.concatenate([points, np.broadcast_to(direction, points.shape)], axis=1)))
+        leaving += np.isfinite(answer["t_hit"].numpy()) & (answer["primitive_normals"].numpy() @ direction > 0)
+    share = ndimage.gaussian_filter((leaving / directions).reshape(shape), 0.5)
+    vertices, faces, _, _ = measure.marching_cubes(share, 0.5)
+    solid = trimesh.Trimesh(vertices * voxel + low, faces)
+    solid = max(solid.split(only_watertight=False), key=lambda part: part.area)
+    if solid.volume < 0:
+        solid.invert()
+    return solid
+
+
 def _read_points(path: Path) -> np.ndarray:
     try:
         points = np.loadtxt(path, dtype=np.float64, ndmin=2)
@@ -226,7 +268,7 @@ def _read_points(path: Path) -> np.ndarray:
 
 def load_mesh(path: str | Path, axes: str = "shapenet") -> trimesh.Trimesh:
     """Read any mesh file trimesh can load (or a point file, meshed: :func:`mesh_from_points`); convert its axes
-    (:data:`sequences.axes.MESH_AXES`) to ShapeNet's; centre on its box.
+    (:data:`sequences.axes.MESH_AXES`) to ShapeNet's; close it if it is open (:func:`closed_mesh`); centre on its box.
 
     Raises InputError for an unreadable file, a file without triangles, or an implausible size.
     """
@@ -250,7 +292,12 @@ def load_mesh(path: str | Path, axes: str = "shapenet") -> trimesh.Trimesh:
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if not np.all(np.isfinite(vertices)):
         raise InputError(path, "mesh has NaN or infinite vertex coordinates")
-    mesh = centred(trimesh.Trimesh(to_shapenet_points(vertices, axes), np.asarray(mesh.faces), process=False))
+    mesh = trimesh.Trimesh(to_shapenet_points(vertices, axes), np.asarray(mesh.faces), process=False)
+    merged = mesh.copy()
+    merged.merge_vertices()
+    if not merged.is_watertight:  # a camera would see into it through its holes: no physical object
+        mesh = closed_mesh(merged)
+    mesh = centred(mesh)
     size = float(mesh.extents.max())
     if not (MESH_SIZE_RANGE[0] <= size <= MESH_SIZE_RANGE[1]):
         raise InputError(path, f"mesh is {size:.3g} m across; expected a hand-held object of {MESH_SIZE_RANGE[0]}-{MESH_SIZE_RANGE[1]} m (units must be metres)")
