@@ -162,9 +162,23 @@ class ModelPanel:
         rec = pipeline.reconstruct_sequence(self.app.sequence, document, voxel_size=PREVIEW_VOXEL, progress=self._progress)
         # the mesh is centred on its tight box; the box node is the annotated object frame
         vertices = np.asarray(rec.mesh.vertices) + np.asarray(getattr(rec, "centre_shift", np.zeros(3)))
-        self.app.scene.show_mesh(vertices, np.asarray(rec.mesh.faces))
+        surface = getattr(rec, "surface", None)
+        colors = None
+        if surface is not None:  # a face takes its vertices' most trusted label, as in the report's shares
+            from reconstruct.seen import LABEL_COLOURS
+
+            colors = LABEL_COLOURS[surface.labels[np.asarray(rec.mesh.faces)].min(axis=1)]
+        self.app.scene.show_mesh(vertices, np.asarray(rec.mesh.faces), colors)
         extents = ", ".join(f"{e * 1000:.1f}" for e in rec.extents)
-        return f"Mesh preview: {len(rec.mesh.faces)} faces, tight box {extents} mm"
+        message = f"Mesh preview: {len(rec.mesh.faces)} faces, tight box {extents} mm"
+        if surface is not None:
+            shares = surface.shares
+            message += (f"; surface {shares['observed']:.0%} observed (grey), {shares['inferred']:.0%} inferred from symmetry (blue), "
+                        f"{shares['unseen']:.0%} never seen (orange)")
+            unmeasured = surface.unmeasured_faces()
+            if unmeasured:
+                message += f". The box's {', '.join(face for face, _ in unmeasured)} rests on unseen surface: {unmeasured[0][1]}."
+        return message
 
     def _export(self) -> str:
         pipeline, export = reconstruct_module()

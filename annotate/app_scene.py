@@ -67,6 +67,8 @@ class SceneView:
         self.frustum = None
         self.model = None
         self.mesh = None
+        self.mesh_parts: list = []
+        self.mesh_vertices = np.zeros((0, 3), np.float32)  # the preview's vertices, object frame
         self.extents = None
         self.show_faces = True
         self._box_key = None
@@ -156,10 +158,22 @@ class SceneView:
             colors = (255, 140, 0) if colors is None else colors
             self.model = self.scene.add_point_cloud(f"{BOX}/model", np.asarray(points_obj, dtype=np.float32), colors, point_size=self.point_size * 0.6, precision="float32", point_shading="flat")
 
-    def show_mesh(self, vertices: np.ndarray | None, faces: np.ndarray | None = None) -> None:
-        """A mesh preview (object frame) below the box, or remove it (None)."""
-        if self.mesh is not None:
-            self.mesh.remove()
-            self.mesh = None
-        if vertices is not None and len(vertices):
-            self.mesh = self.scene.add_mesh_simple(f"{BOX}/mesh", np.asarray(vertices, dtype=np.float32), np.asarray(faces), color=(240, 200, 120), opacity=0.8, flat_shading=False, side="double")
+    def show_mesh(self, vertices: np.ndarray | None, faces: np.ndarray | None = None, face_colors: np.ndarray | None = None) -> None:
+        """A mesh preview (object frame) below the box, or remove it (None). ``face_colors`` (F, 3) uint8 tint its faces
+        (what was seen: reconstruct.seen.LABEL_COLOURS): one mesh per colour, as viser's meshes take one colour each."""
+        for handle in self.mesh_parts:
+            handle.remove()
+        self.mesh_parts = []
+        self.mesh = None
+        if vertices is None or not len(vertices):
+            return
+        vertices, faces = np.asarray(vertices, dtype=np.float32), np.asarray(faces)
+        if face_colors is None:
+            face_colors = np.broadcast_to(np.array([240, 200, 120], np.uint8), (len(faces), 3))
+        colours, which = np.unique(np.asarray(face_colors, np.uint8), axis=0, return_inverse=True)
+        for k, colour in enumerate(colours):  # three colours at most
+            part = self.scene.add_mesh_simple(f"{BOX}/mesh_{k}", vertices, faces[which.reshape(-1) == k], color=tuple(int(c) for c in colour),
+                                              opacity=0.85, flat_shading=False, side="double")
+            self.mesh_parts.append(part)
+        self.mesh = self.mesh_parts[0]
+        self.mesh_vertices = vertices

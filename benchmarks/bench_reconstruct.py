@@ -13,7 +13,7 @@ are off by up to 10 % (the carving margin must cover that). With --bound a third
 carves with the true poses every voxel seen free in even one frame (k = 0, no veto, hence no
 evidence hull): no rule on free-space votes can carve more, so what it leaves (a cavity or a
 hand-covered patch never seen free) is missing from the free-space evidence, not from the rule.
-The evidence hull (reconstruct.evidence; by default for mugs only) goes further: it also drops
+The evidence hull (reconstruct.evidence; off by default) goes further: it also drops
 unseen space that no measured surface bounds; --evidence-hull uses it for every object without
 symmetry, --no-evidence-hull for none. Printed per run:
 
@@ -106,7 +106,7 @@ def main() -> None:
     parser.add_argument("--voxel-size", type=float, default=0.002)
     parser.add_argument("--k", type=int, default=None)
     parser.add_argument("--tol-sigmas", type=float, default=None)
-    parser.add_argument("--voxel-margin", type=float, default=None, help="half voxel diagonals added to the free-space tolerance (default: reconstruct.pipeline.default_voxel_margin)")
+    parser.add_argument("--voxel-margin", type=float, default=None, help="half voxel diagonals added to the free-space tolerance (default: reconstruct.pipeline.VOXEL_MARGIN)")
     parser.add_argument("--settle", type=int, default=None, help="free votes after which the veto no longer saves a voxel")
     parser.add_argument("--carved-share", type=float, default=None, help="share of a ring (symmetry y) carved for the whole ring to go")
     parser.add_argument("--no-shadows", action="store_true", help="missing depth stays unknown even where a projector shadow explains it")

@@ -27,8 +27,9 @@ from evaluate.metrics.pose_errors import rotation_error
 from evaluate.metrics.sampling import ShapeIndex, sample_surface
 from evaluate.metrics.shape_metrics import fscore_from_hits
 
-#: A true surface sample counts as observed in a frame when its camera sees it (the first hit of the ray to it) and a
-#: measured object point lies within this distance (metres): depth noise, quantisation and a pixel's footprint.
+#: A true surface sample counts as observed in a frame when its camera sees it (the first hit of the ray to it, on a face
+#: turned to the camera) and a measured object point lies within this distance (metres): depth noise, quantisation
+#: and a pixel's footprint.
 OBSERVED_TOLERANCE = 0.004
 #: The F-score distance of the suite's shape and posed figures (metres).
 FSCORE_THRESHOLD = 0.005
@@ -91,8 +92,9 @@ def observed_samples(points: np.ndarray, mesh, frames) -> np.ndarray:
         ray = points - centre
         length = np.linalg.norm(ray, axis=1)
         rays = np.concatenate([np.broadcast_to(centre, ray.shape), ray / length[:, None]], axis=1).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        visible = hit > length - 0.001  # nothing of the object in front of the sample
+        answer = scene.cast_rays(o3d.core.Tensor(rays))
+        # nothing of the object in front of the sample, which lies on a face turned to the camera (outward normals)
+        visible = (answer["t_hit"].numpy() > length - 0.001) & (np.einsum("ij,ij->i", answer["primitive_normals"].numpy(), rays[:, 3:]) < 0)
         near = cKDTree((measured - t) @ R).query(points[visible], distance_upper_bound=OBSERVED_TOLERANCE)[0]
         observed[np.flatnonzero(visible)[np.isfinite(near)]] = True
     return observed
@@ -141,12 +143,17 @@ def aligned_points(points: np.ndarray, start: np.ndarray, target: np.ndarray, re
     return np.asarray(source.transform(result.transformation).points)
 
 
+#: The box faces in the order of reconstruct.seen.BOX_FACES (object frame, ShapeNet axes).
+FACE_NAMES = ("-y (bottom)", "+y (top)", "-x", "+x", "-z", "+z")
+
+
 def shape_scores(mesh, poses: dict[str, np.ndarray], surface: TrueSurface, truth_poses: dict[str, np.ndarray],
                  threshold: float = FSCORE_THRESHOLD, seed: int = 0) -> dict:
     """The reconstruction's shape against the true surface, aligned (:func:`mean_transform` of its frames' T_true^-1
     T_pose, then :func:`aligned_points`): F-score, precision and recall at ``threshold``, overall and on the observed
     surface (recall over the observed true samples; precision over the reconstruction's samples whose nearest true
-    sample is an observed one)."""
+    sample is an observed one); and per box face (:data:`FACE_NAMES`) how far the aligned reconstruction's extreme
+    lies outside the truth's (mm; negative: inside)."""
     start = mean_transform([np.linalg.inv(truth_poses[f]) @ T for f, T in poses.items() if f in truth_poses])
     points = sample_surface(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
     aligned = aligned_points(points, start, surface.index.points)
@@ -155,7 +162,10 @@ def shape_scores(mesh, poses: dict[str, np.ndarray], surface: TrueSurface, truth
     nearest = surface.index.tree.query(aligned)[1]
     on_observed = surface.observed[nearest]
     observed = fscore_from_hits(true_hit[surface.observed], hit[on_observed]) if surface.observed.any() and on_observed.any() else None
+    low, high = aligned.min(axis=0) - surface.index.points.min(axis=0), aligned.max(axis=0) - surface.index.points.max(axis=0)
+    faces = {name: float(value * 1000) for name, value in zip(FACE_NAMES, (-low[1], high[1], -low[0], high[0], -low[2], high[2]))}
     return {
+        "face_errors_mm": faces,
         "shape_f5": overall.fscore,
         "shape_precision5": overall.precision,
         "shape_recall5": overall.recall,

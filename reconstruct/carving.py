@@ -86,7 +86,7 @@ DEFAULT_CARVED_SHARE = 0.3
 #: keeps those rims but leaves +4.2 mm on a can seen from 45 deg of azimuth only
 #: (tests/test_reconstruct.py::test_symmetry_fills_the_sides_never_seen). Half of the observed voxels:
 #: bowls -3.3 / -0.6 / -0.4 mm, bottles +1.5 / +1.9 mm, and the can's unseen sides still fill. With the
-#: rings' smaller free-space margin (reconstruct.pipeline.RING_VOXEL_MARGIN, 0.5 half diagonals) 0.6 keeps
+#: rings' smaller free-space margin (reconstruct.pipeline.VOXEL_MARGIN, 0.5 half diagonals) 0.6 keeps
 #: the seed-0 bowl's rim (-3.3 -> -0.9 mm; 0.6 with margin 1.0 widens the seed-0 bottle to +3.1 mm).
 OBSERVED_CARVED_SHARE = 0.6
 OBSERVED_FLOOR = 0.1
@@ -193,6 +193,13 @@ class VoxelGrid:
 
     def axis_coordinates(self, axis: int) -> np.ndarray:
         return self.origin[axis] + self.voxel_size * np.arange(self.shape[axis])
+
+
+def inside_box(grid: "VoxelGrid", extents) -> np.ndarray:
+    """(nx, ny, nz) bool: voxels whose centre lies inside the box of full sides ``extents`` centred on the origin."""
+    half = np.asarray(extents, dtype=np.float64) / 2
+    axes = [np.abs(grid.axis_coordinates(a)) <= half[a] for a in range(3)]
+    return axes[0][:, None, None] & axes[1][None, :, None] & axes[2][None, None, :]
 
 
 def default_margin(extents: np.ndarray) -> np.ndarray:

@@ -48,7 +48,14 @@ def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_siz
 
     reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing, include_flagged=include_flagged)
     progress("export", 0, 1)
-    return export_redwood(reconstruction, sequence, annotation, out, masks=masks)
+    path = export_redwood(reconstruction, sequence, annotation, out, masks=masks)
+    if reconstruction.surface is not None:
+        unmeasured = reconstruction.surface.unmeasured_faces()
+        if unmeasured:  # the box there rests on surface no frame measured: its extent is a guess
+            faces = ", ".join(face for face, _ in unmeasured)
+            tqdm.write(f"warning: {reconstruction.sequence}: the tight box's {faces} face{'s' if len(unmeasured) > 1 else ''} rest on surface "
+                       f"no frame measured; {unmeasured[0][1]}", file=sys.stderr)
+    return path
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -15,12 +15,11 @@ so the hull may open space inside the carved outline, never move the outline. Wh
 largest piece is not that of the carving's (within DEFAULT_BOX_SLACK), the carved occupancy is kept.
 Hand remnants the hand's own surface backs stay either way.
 
-Which objects: a solid object one of whose faces no frame sees (held there, or facing away) is
-walled in by backed voxels except on that face, exactly like a mug whose opening no frame looks
-into; the hull drains both (measured on synthetic cameras, seeds 0 and 2: F@5mm 0.898 -> 0.822,
-the body left hollow). So by default it applies to open containers only (OPEN_CONTAINERS: the
-category says the unseen inside is empty, as ``symmetry: y`` says the unseen side is like the seen
-one); bowls are open too but symmetric, and their rings fill and carve the unseen parts instead.
+Not applied by default (``reconstruct_sequence(evidence_hull=True)`` turns it on): measured on the benchmark's
+dev split from the true poses, it opens the unseen inside of an open container (a mug whose inside no frame
+saw: posed F@5mm 0.92 -> 1.00) but drains solid objects one of whose faces no frame measured (a camera 0.94 ->
+0.79, a wood block 1.00 -> 0.81), and nothing in the data tells the two apart reliably. What stays of unseen
+space is labelled so instead (:mod:`reconstruct.seen`).
 """
 
 from __future__ import annotations
@@ -34,13 +33,6 @@ from .meshing import fill_holes, largest_component
 #: at most 1 voxel (the hull only opens the inside); seed 0, whose handle side is never seen, loses
 #: its handle (17 voxels); a can seen from 45 degrees of azimuth only loses its far half.
 DEFAULT_BOX_SLACK = 1
-#: Categories whose unseen inside is taken to be empty (see the module notes).
-OPEN_CONTAINERS = ("mug",)
-
-
-def applies(category: str, symmetry: str) -> bool:
-    """Whether the evidence hull is used by default for an object of this category and symmetry."""
-    return category in OPEN_CONTAINERS and symmetry != "y"
 
 
 def voxel_box(mask: np.ndarray) -> np.ndarray:

@@ -10,7 +10,9 @@ replaced, the rest kept):
   the OpenCV camera frame (metres), orientation quaternion x, y, z, w (object to camera).
 - ``OUT/<sequence>.obj``: the mesh, raw axes, metres, centred on its tight box.
 - ``OUT/masks/<sequence>/<frame id>.png``: instance masks, uint8 0 / 255 (see :mod:`reconstruct.masks`).
-- ``OUT/reports/<sequence>.json`` and ``OUT/reports/<sequence>.png``: report and preview.
+- ``OUT/reports/<sequence>.json`` and ``OUT/reports/<sequence>.png``: report and preview;
+  ``OUT/reports/<sequence>.ply``: the mesh (ShapeNet axes) coloured by what was seen (:mod:`reconstruct.seen`:
+  grey observed, blue inferred from symmetry, orange unseen), the shares and the box faces in the report.
 
 A sequence's files are written as one unit (:mod:`reconstruct.transaction`): staged beside OUT, swapped in
 by renames with the previous files kept until ``annotations.json``, written last, commits them; a killed
@@ -35,6 +37,7 @@ from sequences.reader import Sequence
 from .masks import mask_png_bytes, render_masks
 from .pipeline import Reconstruction
 from .report import preview_png_bytes, report_json
+from .seen import coloured_ply
 from .transaction import ExportTransaction, OutLock, recover
 
 ANNOTATIONS = "annotations.json"
@@ -121,6 +124,8 @@ def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotatio
             transaction.stage(entry["mesh"], obj.encode("utf-8"))
             transaction.stage(f"reports/{name}.json", report_json(report).encode("utf-8"))
             transaction.stage(f"reports/{name}.png", preview)
+            if reconstruction.surface is not None:  # what was seen: grey observed, blue inferred, orange unseen
+                transaction.stage(f"reports/{name}.ply", coloured_ply(reconstruction.mesh, reconstruction.surface))
             # read under the lock: another sequence may have been added meanwhile
             merged = read_annotations(annotations_path)
             merged[name] = entry

@@ -19,6 +19,8 @@ from sequences.errors import InputError
 from sequences.reader import Sequence
 
 from . import carving, evidence, meshing
+from .revolution import fit_revolution, revolved_fill
+from .seen import SurfaceLabels, label_surface
 from .tight_box import fit_tight_box
 
 #: progress(stage, done, total): called as frames are carved and at each stage.
@@ -44,6 +46,7 @@ class Reconstruction:
     report: dict
     centre_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # tight-box centre in the annotated object frame
     voxel_size: float = 0.002
+    surface: SurfaceLabels | None = None  # what was seen: per-vertex labels, box faces bounded by a measurement
 
 
 #: Frames flagged for review (tracking's quality flags) are left out of the carving unless fewer than
@@ -96,25 +99,17 @@ def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarra
             yield frame_id, depth, poses[frame_id]
 
 
-#: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``): where carving
-#: alone decides, for the rings of a symmetric object (symmetry y, with carving.OBSERVED_CARVED_SHARE), and
-#: where the evidence hull (mugs) pools the voxels' decisions. The half diagonal keeps a voxel whose centre
-#: lies in front of the measured surface but within reach of it; on a face seen head-on it fattens the
-#: object by about that much. Measured (benchmarks/bench_reconstruct.py, v5, seeds 0-1 (rings and mugs
-#: 0-3), worst extents error true / 1 deg + 2 mm poses): camera 1.0: +3.8 / +3.8 mm, 0.0: +2.5 / +2.1 mm;
-#: laptop 1.0: +3.0 / +2.4, 0.0: +1.6 / -1.9; rings (ring share 0.5) with 0.0 lose a bowl's rim under
-#: pose errors (seed 1 x -0.7 -> -3.8 mm); rings with 0.5 and ring share 0.6: bottles +2.9 / +2.0 mm,
-#: bowls -1.3 / -1.4, cans +2.0 / +2.0 (1.0 and share 0.5: bottles +2.9 / +2.9, bowls -1.3 / -3.3);
-#: the mug's evidence hull with 0.0 loses its inside (seed 2 F@1cm 0.991 -> 0.978).
-PLAIN_VOXEL_MARGIN = 0.0
-RING_VOXEL_MARGIN = 0.5
-HULL_VOXEL_MARGIN = 1.0
+#: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``). The half diagonal keeps
+#: a voxel whose centre lies in front of the measured surface but within reach of it; on a face seen head-on it
+#: fattens the object by about that much. Measured on the benchmark's dev split (true poses and 4 placed boxes):
+#: none lets a laptop's screen, seen edge-on, lose 25 mm of its top; a whole one fattens round rims and flat faces
+#: by 2-5 mm; half of one met the reconstruction goals on 17 of 19 sequences from the true poses and 11 of 19 from
+#: tracked ones, as a whole one for objects without symmetry did, with the larger sum of posed F-scores.
+VOXEL_MARGIN = 0.5
 
 
-def default_voxel_margin(symmetric: bool, hull: bool) -> float:
-    """The free-space tolerance's half voxel diagonals: RING_VOXEL_MARGIN for a ``symmetric`` object (symmetry y),
-    HULL_VOXEL_MARGIN where the evidence ``hull`` applies, else PLAIN_VOXEL_MARGIN."""
-    return RING_VOXEL_MARGIN if symmetric else HULL_VOXEL_MARGIN if hull else PLAIN_VOXEL_MARGIN
+#: The annotated box bounds what no frame observed, grown by this share of its sides (a box placed a little small).
+BOX_PRIOR_SLACK = 0.05
 
 
 def reconstruct_sequence(
@@ -130,28 +125,28 @@ def reconstruct_sequence(
     voxel_margin: float | None = None,
     silhouette_px: int = 0,
     carved_share: float = carving.DEFAULT_CARVED_SHARE,
-    observed_share: bool = True,
     veto: float | None = carving.DEFAULT_VETO,
     settle: int = carving.DEFAULT_SETTLE,
     shadows: bool = carving.DEFAULT_SHADOWS,
     unbacked: int | None = carving.DEFAULT_UNBACKED,
     evidence_hull: bool | None = None,
+    box_prior: bool = True,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
     include_flagged: bool = False,
 ) -> Reconstruction:
-    """Carve, mesh, smooth and fit the tight box of one annotated sequence.
+    """Carve, mesh, smooth, fit the tight box of one annotated sequence and label what was seen.
 
     Poses every frame with a pose (or ``frames``), and carves with those not flagged for review
     (:func:`carving_frames`; all of them with ``include_flagged`` or explicit ``frames``);
-    ``voxel_size`` and ``margin`` (per side, around
-    the annotated box) in metres; ``k`` votes threshold (default :func:`carving.choose_k`).
-    ``evidence_hull``: drop the unseen space no measured surface bounds (:mod:`reconstruct.evidence`;
-    needs the veto's counts; never for symmetry y); None: for open containers (mugs) only.
-    ``observed_share`` (symmetry y, with the veto's counts): a ring is carved when
-    carving.OBSERVED_CARVED_SHARE of its observed voxels are, else when ``carved_share`` of all are.
-    ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
-    :func:`default_voxel_margin`.
+    ``voxel_size`` and ``margin`` (per side, around the annotated box) in metres; ``k`` votes threshold
+    (default :func:`carving.choose_k`). For ``symmetry: y`` the solid of revolution fills in what no frame
+    observed where the measured surface is round (:mod:`reconstruct.revolution`). ``box_prior``: space no
+    frame observed counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK). ``evidence_hull``
+    (off by default, never for symmetry y): drop the unseen space no measured surface bounds
+    (:mod:`reconstruct.evidence`). ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
+    VOXEL_MARGIN. ``surface`` of the result labels the mesh observed, inferred or unseen
+    (:mod:`reconstruct.seen`).
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -167,20 +162,33 @@ def reconstruct_sequence(
     if grid.size > 60_000_000:
         raise InputError(source, f"voxel grid of {grid.shape} is too large: raise --voxel-size or check the extents")
     k_votes = carving.choose_k(len(ids)) if k is None else int(k)
-    hull = veto is not None and (evidence.applies(annotation.category, annotation.symmetry) if evidence_hull is None else evidence_hull)
+    hull = veto is not None and bool(evidence_hull) and annotation.symmetry != "y"
     if voxel_margin is None:
-        voxel_margin = default_voxel_margin(annotation.symmetry == "y", hull)
+        voxel_margin = VOXEL_MARGIN
     result = carving.carve(grid, _depth_frames(sequence, ids, poses), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked)
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
     occupied = result.occupied
-    if annotation.symmetry == "y":
-        observed = None if result.behind_count is None or not observed_share else (result.free_count > 0) | (result.behind_count > 0)
-        occupied = carving.revolve_occupancy(occupied, grid, carving.OBSERVED_CARVED_SHARE if observed is not None else carved_share, observed)
+    revolution, filled = None, None
+    if annotation.symmetry == "y" and result.behind_count is not None:
+        # the label is a prior: the solid of revolution fills in only what no frame observed, where the data is round
+        # decided by the data: carved, or seen just behind a measured surface (a voxel seen free too few times to be
+        # carved is not: its ring may carve it)
+        observed = ~occupied | (result.behind_count > 0)
+        revolution = fit_revolution(occupied & (result.behind_count > 0), grid)
+        revolved = revolved_fill(occupied, observed, grid, revolution)
+        filled, occupied = occupied & ~revolved, revolved
+    elif annotation.symmetry == "y":
+        occupied = carving.revolve_occupancy(occupied, grid, carved_share)
     elif result.behind_count is not None and hull:
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, result.behind_count)
+    if result.behind_count is not None and box_prior:
+        # space no frame observed is object only inside the annotated box: the grid's margin (for boxes placed too
+        # small) would otherwise stay solid wherever no frame looked
+        unobserved = (result.free_count == 0) & (result.behind_count == 0)
+        occupied = occupied & ~(unobserved & ~carving.inside_box(grid, annotation.extents * (1 + BOX_PRIOR_SLACK)))
     timings["symmetry"] = time.perf_counter() - start
     say("mesh", 0, 1)
     start = time.perf_counter()
@@ -193,6 +201,10 @@ def reconstruct_sequence(
     start = time.perf_counter()
     mesh, new_poses, centre, extents = fit_tight_box(mesh, poses)
     timings["tight_box"] = time.perf_counter() - start
+    start = time.perf_counter()
+    # what was seen: the carving frames' depth once more, against the mesh at their poses
+    surface = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses)), sequence.camera, filled, centre)
+    timings["labels"] = time.perf_counter() - start
     say("mesh", 1, 1)
 
     solid_voxels = int(meshing.largest_component(occupied).sum())
@@ -220,6 +232,9 @@ def reconstruct_sequence(
         "volume": meshing.signed_volume(mesh),
         "timings": timings,
     }
+    if revolution is not None:
+        report["revolution"] = revolution.summary()
+    report.update(surface.report())
     return Reconstruction(
         sequence=annotation.sequence or sequence.name,
         category=annotation.category,
@@ -231,4 +246,5 @@ def reconstruct_sequence(
         report=report,
         centre_shift=centre,
         voxel_size=voxel_size,
+        surface=surface,
     )

@@ -97,6 +97,8 @@ def test_posed_and_shape_scores():
     # a cube 2 cm larger: its faces lie 1 cm off the true ones, nothing within 5 mm
     bigger = shape_scores(_cube(0.12), truth_poses, surface, truth_poses)
     assert bigger["shape_f5"] < 0.2
+    assert all(abs(v - 10.0) < 1.5 for v in bigger["face_errors_mm"].values())  # every face 1 cm out
+    assert all(abs(v) < 1.0 for v in perfect["face_errors_mm"].values())
 
 
 def test_mean_transform():

@@ -60,7 +60,8 @@ def test_mesh_preview_and_export_from_the_page(truth, tmp_path):
     try:
         assert app.model.start(app.model._preview, wait=True)
         assert app.scene.mesh is not None, app.model.info.content
-        vertices = np.asarray(app.scene.mesh.vertices)
+        vertices = np.asarray(app.scene.mesh_vertices)
+        assert "observed (grey)" in app.model.info.content  # the preview says what was seen
         # the carved mesh (object frame) is about the true box: within the crop margin and 2 voxels
         assert np.all(np.abs(vertices) <= TRUE_EXTENTS / 2 + 0.02)
         assert np.all(vertices.max(axis=0) - vertices.min(axis=0) >= TRUE_EXTENTS * 0.6)

@@ -474,20 +474,24 @@ def test_box_scene_is_reconstructed_to_the_millimetre(box_scene):
 
 def test_cup_cavity_is_carved(cup_scene):
     sequence, annotation = _load(cup_scene)
+    # 40 frames at 320x240 see into the cavity from a few frames only: carving alone leaves its lower part by the
+    # near wall, and says so: that surface is labelled unseen
     rec = reconstruct_sequence(sequence, annotation)
     mesh = rec.mesh.copy()
     mesh.apply_translation(rec.centre_shift)
-    # 40 frames at 320x240 see into the cavity from a few frames only: carving alone leaves its
-    # lower part by the near wall (measured x1.5 the volume, F@5mm 0.91; a solid cylinder would be
-    # x3.1); no frame sees a surface there, so the evidence hull drops it (measured x1.13, F@5mm 1.0)
-    assert fscore(mesh, cup_scene.mesh, 0.005) >= 0.98
-    assert 0.9 < mesh.volume / cup_scene.mesh.volume < 1.25
+    assert 1.2 < mesh.volume / cup_scene.mesh.volume < 2.0
+    assert rec.surface.shares["unseen"] > 0.05
     np.testing.assert_allclose(rec.extents, cup_scene.extents, atol=0.003)
-    # the same scene called a camera (not an open container): no evidence hull by default
+    # the evidence hull (an option, the same for any category) drops it: no frame measured a surface there
+    hull = reconstruct_sequence(sequence, annotation, evidence_hull=True)
+    hull_mesh = hull.mesh.copy()
+    hull_mesh.apply_translation(hull.centre_shift)
+    assert fscore(hull_mesh, cup_scene.mesh, 0.005) >= 0.98
+    assert 0.9 < hull_mesh.volume / cup_scene.mesh.volume < 1.25
+    np.testing.assert_allclose(hull.extents, cup_scene.extents, atol=0.003)
     annotation.category = "camera"
-    carved = reconstruct_sequence(sequence, annotation)
-    assert carved.mesh.volume / cup_scene.mesh.volume > 1.35
-    assert reconstruct_sequence(sequence, annotation, evidence_hull=True).mesh.volume == pytest.approx(mesh.volume, rel=1e-6)
+    assert reconstruct_sequence(sequence, annotation, evidence_hull=True).mesh.volume == pytest.approx(hull.mesh.volume, rel=1e-6)
+    assert reconstruct_sequence(sequence, annotation).mesh.volume == pytest.approx(rec.mesh.volume, rel=1e-6)
 
 
 def test_symmetry_fills_the_sides_never_seen(tmp_path):
@@ -542,9 +546,19 @@ def test_synthetic_held_mug_surface(synthetic_mug):
     truth, rec, mesh = synthetic_mug
     assert rec.mesh.is_watertight
     assert fscore(mesh, truth.mesh, 0.005) >= 0.9
-    # the lower inside by the near wall is never seen free; the evidence hull drops it (no frame saw a
-    # surface there). Carving alone measured 0.97 (generator v4, seed 2)
-    assert fscore(mesh, truth.mesh, 0.01) >= 0.98
+    # the lower inside by the near wall is never seen free: carving keeps it (F@1cm 0.979 measured), labelled
+    # unseen; the evidence hull, an option, drops it (no frame saw a surface there)
+    assert fscore(mesh, truth.mesh, 0.01) >= 0.97 and rec.surface.shares["unseen"] > 0.03
+    root = truth.root
+    annotation = load_annotation(root / "annotation.yaml") if (root / "annotation.yaml").exists() else None
+    if annotation is None:
+        from sequences.synth import truth_annotation
+
+        annotation = truth_annotation(truth, truth.ids, rotation_deg=1.0, translation_m=0.002, extents_rel=0.1, seed=0)
+    hull = reconstruct_sequence(open_sequence(root), annotation, evidence_hull=True)
+    hull_mesh = hull.mesh.copy()
+    hull_mesh.apply_translation(hull.centre_shift)
+    assert fscore(hull_mesh, truth.mesh, 0.01) >= 0.98
 
 
 @pytest.mark.slow  # the palm's patch by the handle is seen free only through projector shadows (carve(shadows=True))
@@ -552,8 +566,13 @@ def test_synthetic_held_mug_box_and_no_hand_remnants(synthetic_mug):
     truth, rec, mesh = synthetic_mug
     from scipy.spatial import cKDTree
 
-    samples = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
-    distance = cKDTree(trimesh.sample.sample_surface(truth.mesh, 20000, seed=1)[0]).query(samples)[0]
-    # nothing farther than 1 cm from the true surface: no hand remnant, no filled inside
-    assert np.mean(distance > 0.01) < 0.002
+    tree = cKDTree(trimesh.sample.sample_surface(truth.mesh, 50000, seed=1)[0])
+    distance = tree.query(mesh.vertices)[0]
+    # nothing the frames measured lies farther than 1 cm from the true surface: no hand remnant; what does (the
+    # mug's lower inside, never seen free) is labelled unseen
+    from reconstruct.seen import UNSEEN
+
+    # (the unseen inside's edge, within the 4 mm tolerance of the measured inner wall, counts as observed: 4 % measured)
+    far = distance > 0.01
+    assert far.any() and np.mean(rec.surface.labels[far] == UNSEEN) > 0.94
     np.testing.assert_allclose(rec.extents, truth.extents, atol=0.003)
