@@ -68,7 +68,10 @@ class App:
             self.look_button = gui.add_button("Look through camera", hint="hotkey H: view from the sensor with its field of view")
             # off at first: seen from the sensor, the frustum's image plane would cover the whole view
             self.frustum_box = gui.add_checkbox("Show camera", initial_value=False, hint="the camera frustum with the colour image")
-            self.point_slider = gui.add_slider("Point size (mm)", min=0.5, max=10.0, step=0.5, initial_value=round(point_size * 1000 * 2) / 2)
+            # the range follows the data: a sequence 3 m away has points a centimetre apart
+            size_mm = round(point_size * 1000 * 2) / 2 if np.isfinite(point_size) else 1.0
+            largest = max(10.0, np.ceil(2 * size_mm))
+            self.point_slider = gui.add_slider("Point size (mm)", min=0.5, max=largest, step=0.5, initial_value=float(np.clip(size_mm, 0.5, largest)))
 
         self.frame_slider.on_update(self._on_slider)
         self.prev_button.on_click(lambda _: self.state.step(-1))

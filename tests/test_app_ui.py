@@ -307,3 +307,26 @@ def test_timeline_columns_match_a_per_column_loop(n):
         hi = max(min((c + 1) * n // 600, n), lo + 1)
         worst = max(statuses[lo:hi], key=order.index)
         assert tuple(row[c]) == STATUS_COLORS[worst], c
+
+
+@pytest.mark.parametrize("depth_m", [0.4, 3.0])
+def test_the_tool_opens_sequences_near_and_far(tmp_path, depth_m):
+    """Every control's range follows the data: a sequence 3 m away (points a centimetre apart) opens, as one at 0.4 m."""
+    from PIL import Image
+
+    from sequences.reader import open_sequence
+
+    root = tmp_path / f"far_{depth_m}"
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    for k in range(2):
+        Image.fromarray(np.full((480, 640, 3), 120, np.uint8)).save(root / "rgb" / f"{k + 1:07d}.png")
+        Image.fromarray(np.full((480, 640), int(depth_m * 1000), np.uint16)).save(root / "depth" / f"{k + 1:07d}.png")
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        app = App(server, open_sequence(root))
+        slider = app.point_slider
+        assert slider.min <= slider.value <= slider.max
+        app.close()
+    finally:
+        server.stop()
