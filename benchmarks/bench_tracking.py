@@ -238,12 +238,9 @@ GOALS = (("rot_median_deg", 1.5, True), ("rot_p90_deg", 3.0, True), ("centre_med
 
 def goal_failures(row: dict) -> list[str]:
     """The goals one benchmark row misses, as "key value" strings (a figure not measured is not judged)."""
-    out = []
-    for key, limit, at_most in GOALS:
-        value = row.get(key)
-        if value is not None and (value > limit if at_most else value < limit):
-            out.append(f"{key} {value:.3g}")
-    return out
+    from suite.run import missed_goals
+
+    return missed_goals(row, GOALS)
 
 
 def pooled_summary(rows: list[dict]) -> str:

@@ -31,15 +31,15 @@ def _json(path: Path, what: str) -> dict:
     return data
 
 
-def _camera(path: Path, entry) -> Camera:
+def _camera(path: Path, entry, width: int = 640, height: int = 480) -> Camera:
+    """An image's camera: ``cam_K`` and ``depth_scale`` (BOP's: millimetres per unit)."""
+    if not isinstance(entry, dict) or "cam_K" not in entry or "depth_scale" not in entry:
+        raise InputError(path, "an image's cam_K or depth_scale is missing")
     try:
-        K = np.asarray(entry["cam_K"], dtype=np.float64).reshape(3, 3)
-        scale = float(entry["depth_scale"])
-    except (KeyError, TypeError, ValueError) as error:
-        raise InputError(path, f"an image's cam_K or depth_scale is missing or malformed ({error.__class__.__name__})") from error
-    if not (np.all(np.isfinite(K)) and scale > 0):
-        raise InputError(path, "cam_K must be finite and depth_scale positive")
-    return Camera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]), depth_scale=scale / 1000.0)
+        millimetres = float(entry["depth_scale"])
+    except (TypeError, ValueError) as error:
+        raise InputError(path, f"an image's depth_scale is malformed ({error.__class__.__name__})") from error
+    return Camera.from_matrix(path, entry["cam_K"], millimetres / 1000.0, width, height)
 
 
 def open_bop_scene(root: str | Path) -> Sequence:
@@ -62,8 +62,7 @@ def open_bop_scene(root: str | Path) -> Sequence:
         raise InputError(root, "no image of scene_camera.json has both rgb/<id> and depth/<id>.png (BOP layout)")
     first_key = next(k for k in cameras if (f"{int(k):06d}" if str(k).isdigit() else str(k)) == frames[0].id)
     width, height = open_image(frames[0].color_path).size
-    camera = _camera(root / "scene_camera.json", cameras[first_key])
-    return Sequence.from_frames(root, frames, Camera(**{**camera.to_dict(), "width": width, "height": height}), "bop")
+    return Sequence.from_frames(root, frames, _camera(root / "scene_camera.json", cameras[first_key], width, height), "bop")
 
 
 def _object_id(root: Path, object_name: str | None) -> int:

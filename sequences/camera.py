@@ -80,6 +80,19 @@ class Camera:
         return points, index
 
     @classmethod
+    def from_matrix(cls, path: str | Path, K, depth_scale, width: int = 640, height: int = 480) -> "Camera":
+        """The camera of a 3x3 intrinsic matrix ``K`` and a depth scale (metres per unit) that a dataset file
+        (``path``, named in errors) gives; InputError when either is malformed."""
+        try:
+            K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+            depth_scale = float(depth_scale)
+        except (TypeError, ValueError) as error:
+            raise InputError(path, f"the intrinsic matrix or the depth scale is malformed ({error.__class__.__name__})") from error
+        if not (np.all(np.isfinite(K)) and np.isfinite(depth_scale) and depth_scale > 0):
+            raise InputError(path, "the intrinsic matrix must be finite and the depth scale positive")
+        return cls(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]), width=width, height=height, depth_scale=depth_scale)
+
+    @classmethod
     def from_yaml(cls, path: str | Path) -> "Camera":
         """Read ``camera.yaml`` (fx, fy, cx, cy, width, height, depth_scale; any subset overrides the defaults)."""
         path = Path(path)

@@ -54,14 +54,16 @@ def _poses_document(root: Path) -> dict:
 
 
 def _camera(path: Path, entry: dict) -> Camera:
+    """A frame's camera: ``K`` and ``depth_factor`` (units per metre); YCB-Video's images are 640x480."""
+    if not isinstance(entry, dict) or "K" not in entry or "depth_factor" not in entry:
+        raise InputError(path, "a frame's K or depth_factor is missing")
     try:
-        K = np.asarray(entry["K"], dtype=np.float64).reshape(3, 3)
         factor = float(entry["depth_factor"])
-    except (KeyError, TypeError, ValueError) as error:
-        raise InputError(path, f"a frame's K or depth_factor is missing or malformed ({error.__class__.__name__})") from error
-    if not (np.all(np.isfinite(K)) and factor > 0):
-        raise InputError(path, "K must be finite and depth_factor positive")
-    return Camera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]), width=640, height=480, depth_scale=1.0 / factor)
+    except (TypeError, ValueError) as error:
+        raise InputError(path, f"a frame's depth_factor is malformed ({error.__class__.__name__})") from error
+    if not factor > 0:
+        raise InputError(path, f"depth_factor must be positive, got {factor}")
+    return Camera.from_matrix(path, entry["K"], 1.0 / factor)
 
 
 def open_ycbv_video(root: str | Path) -> Sequence:

@@ -60,15 +60,20 @@ def symmetric_extents_error(extents: np.ndarray, truth: Truth) -> float:
     return float(np.abs(extents_error_mm(a, b)).max())
 
 
-def goal_misses(row: dict) -> list[str]:
-    """The goals a row misses ("figure value"); figures not measured are not judged."""
-    goals = RECONSTRUCTION_GOALS + (TRACKING_GOALS if row["setting"] != "truth" else ())
+def missed_goals(row: dict, goals) -> list[str]:
+    """The ``goals`` ((figure, limit, True when it must stay at or below) each) a row misses, as "figure value" strings;
+    a figure not measured is not judged."""
     misses = []
     for key, limit, at_most in goals:
         value = row.get(key)
         if value is not None and (value > limit if at_most else value < limit):
             misses.append(f"{key} {value:.3g}")
     return misses
+
+
+def goal_misses(row: dict) -> list[str]:
+    """The tracking and reconstruction goals a suite row misses (a ``truth`` row has no tracking figures)."""
+    return missed_goals(row, RECONSTRUCTION_GOALS + (TRACKING_GOALS if row["setting"] != "truth" else ()))
 
 
 def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Truth, surface) -> dict:
