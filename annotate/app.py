@@ -237,6 +237,7 @@ def serve(args) -> int:
     # read the first frame now: an unreadable sequence is refused before anything is served
     sequence.color(0)
     sequence.depth_raw(0)
+    sequence.check_depth_scale()
     server = viser.ViserServer(host=args.host, port=args.port, label="annotate", verbose=False)
     try:
         app = App(server, sequence, getattr(args, "annotation", None))

@@ -30,6 +30,7 @@ def run_track(args) -> int:
 
         root = sample_sequence()
     sequence = open_sequence(root)
+    sequence.check()  # every frame decodes and the depth scale is plausible: before any work starts
     path = annotation_path(sequence.root, getattr(args, "annotation", None))
     with DocumentLock(path, "annotate --track"):  # one writer per document, from the read to the write
         return _track_locked(args, sequence, path, sigma)

@@ -158,6 +158,8 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
                 predicted[method.name][i] = (p.position, p.orientation, p.extents, points)
             except PredictionFailure as failure:
                 reasons[method.name][i] = " ".join(str(failure).split())
+            except (Exception, SystemExit) as error:  # a method's own bug or exit is that sample's failure, not the run's end
+                reasons[method.name][i] = " ".join(f"method raised {error.__class__.__name__}: {error}".split())[:300]
             bar.update(1)
     bar.close()
     shapes = [index.get(s) for s in dataset]

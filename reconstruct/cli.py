@@ -40,6 +40,7 @@ def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_siz
     from .pipeline import reconstruct_sequence
 
     sequence = open_sequence(root)
+    sequence.check()  # every frame decodes and the depth scale is plausible: before any work starts
     annotation = load_annotation(annotation_path(root, annotation_file), default_sequence=sequence.name)
 
     def progress(stage: str, done: int, total: int) -> None:

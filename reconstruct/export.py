@@ -22,7 +22,6 @@ checked to stay inside OUT (:mod:`sequences.names`).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ import trimesh
 
 from evaluate.geometry import matrix_to_quat, shapenet_to_raw_extents, shapenet_to_raw_points, shapenet_to_raw_pose
 from sequences.annotation import Annotation
+from sequences.documents import parse_json
 from sequences.errors import InputError
 from sequences.names import check_name
 from sequences.reader import Sequence
@@ -80,8 +80,8 @@ def read_annotations(path: Path) -> dict:
     if not path.exists():
         return {}
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        data = parse_json(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as error:
         raise InputError(path, f"existing annotations file is unreadable ({' '.join(str(error).split())}); not overwriting it") from error
     if not isinstance(data, dict):
         raise InputError(path, "existing annotations file is not a mapping of sequences; not overwriting it")

@@ -72,6 +72,9 @@ def carving_frames(annotation: Annotation, ids: list[str], include_flagged: bool
 
 def select_frames(sequence: Sequence, annotation: Annotation, frames: list[str] | None, source: str) -> list[str]:
     """Frame ids to pose: those of ``frames`` (or every frame with a pose) that the sequence holds (:func:`carving_frames` picks those that carve)."""
+    unknown = sorted(set(annotation.frames) - set(sequence.ids))
+    if unknown:
+        raise InputError(source, f"frame(s) {', '.join(unknown[:5])} of the annotation are not in the sequence {sequence.root}")
     if frames is None:
         chosen = [f for f in sequence.ids if f in annotation.frames]
     else:

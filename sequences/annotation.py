@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from .atomic import write_text_atomic
-from .documents import load_document
+from .documents import StrictLoader, load_document
 from .errors import InputError
 from .names import check_name, safe_name
 
@@ -30,6 +30,9 @@ SOURCES = ("manual", "tracked", "refined")
 #: Categories whose shapes are rotationally symmetric about object +y by default.
 SYMMETRIC_CATEGORIES = ("bottle", "bowl", "can")
 DEFAULT_NAME = "annotation.yaml"
+#: Box sides (metres) a hand-held object can have, and the least depth (metres) of a box's centre in the camera frame.
+EXTENTS_RANGE = (0.001, 2.0)
+MIN_BOX_DEPTH = 0.05
 
 
 def default_symmetry(category: str) -> str:
@@ -152,6 +155,8 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
     extents = _vector(path, "extents", data.get("extents", [0.1, 0.1, 0.1]), 3)
     if np.any(extents <= 0):
         raise InputError(path, f"extents must be positive (an empty box), got {extents.tolist()}")
+    if np.any(extents < EXTENTS_RANGE[0]) or np.any(extents > EXTENTS_RANGE[1]):
+        raise InputError(path, f"extents {extents.tolist()} m are outside {EXTENTS_RANGE[0]}-{EXTENTS_RANGE[1]} m (a hand-held object, in metres)")
     frames_data = data.get("frames") or {}
     if not isinstance(frames_data, dict):
         raise InputError(path, "frames must be a mapping from frame id to pose")
@@ -166,6 +171,8 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
         norm = float(np.linalg.norm(orientation))
         if not math.isclose(norm, 1.0, abs_tol=1e-3):
             raise InputError(path, f"{where} orientation is not a unit quaternion (norm {norm:.4g}; order x, y, z, w)")
+        if position[2] <= MIN_BOX_DEPTH:
+            raise InputError(path, f"{where} box centre is at z = {position[2]:g} m: not in front of the camera (z must exceed {MIN_BOX_DEPTH} m)")
         source = entry.get("source", "manual")
         if source not in SOURCES:
             raise InputError(path, f"{where} source {source!r} is not one of {', '.join(SOURCES)}")
@@ -175,7 +182,7 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
     return Annotation(sequence, category, symmetry, extents, frames, extra)
 
 
-class _KeysAsTextLoader(yaml.SafeLoader):
+class _KeysAsTextLoader(StrictLoader):
     """SafeLoader that keeps scalar mapping keys as their literal text.
 
     YAML 1.1 reads an unquoted frame id such as ``0000012`` as the octal integer 10; frame ids

@@ -16,6 +16,12 @@ from .documents import load_mapping
 from .errors import InputError
 
 
+#: Plausible values of an RGB-D camera: focal length (pixels), image side (pixels), depth scale (metres per unit).
+FOCAL_RANGE = (100.0, 5000.0)
+SIZE_RANGE = (16, 8192)
+DEPTH_SCALE_RANGE = (1e-5, 0.1)
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole intrinsics (pixels) and depth scale (metres per depth unit). Defaults: Redwood's PrimeSense."""
@@ -79,6 +85,24 @@ class Camera:
         points[:, 2] = z
         return points, index
 
+    def plausible(self, path: str | Path) -> "Camera":
+        """This camera, or InputError naming ``path`` when a value is implausible for an RGB-D camera: focal lengths
+        outside FOCAL_RANGE pixels, an image size outside SIZE_RANGE, a principal point outside the image, a depth
+        scale outside DEPTH_SCALE_RANGE metres per unit."""
+        for name in ("fx", "fy"):
+            value = getattr(self, name)
+            if not FOCAL_RANGE[0] <= value <= FOCAL_RANGE[1]:
+                raise InputError(path, f"{name} = {value:g} px is outside {FOCAL_RANGE[0]}-{FOCAL_RANGE[1]} px (an RGB-D camera's focal length)")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not SIZE_RANGE[0] <= value <= SIZE_RANGE[1]:
+                raise InputError(path, f"{name} = {value} px is outside {SIZE_RANGE[0]}-{SIZE_RANGE[1]} px")
+        if not (0 <= self.cx <= self.width and 0 <= self.cy <= self.height):
+            raise InputError(path, f"the principal point ({self.cx:g}, {self.cy:g}) lies outside the {self.width}x{self.height} image")
+        if not DEPTH_SCALE_RANGE[0] <= self.depth_scale <= DEPTH_SCALE_RANGE[1]:
+            raise InputError(path, f"depth_scale {self.depth_scale} m per unit is implausible (expected about 0.001 for millimetres)")
+        return self
+
     @classmethod
     def from_matrix(cls, path: str | Path, K, depth_scale, width: int = 640, height: int = 480) -> "Camera":
         """The camera of a 3x3 intrinsic matrix ``K`` and a depth scale (metres per unit) that a dataset file
@@ -90,7 +114,7 @@ class Camera:
             raise InputError(path, f"the intrinsic matrix or the depth scale is malformed ({error.__class__.__name__})") from error
         if not (np.all(np.isfinite(K)) and np.isfinite(depth_scale) and depth_scale > 0):
             raise InputError(path, "the intrinsic matrix must be finite and the depth scale positive")
-        return cls(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]), width=width, height=height, depth_scale=depth_scale)
+        return cls(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]), width=width, height=height, depth_scale=depth_scale).plausible(path)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "Camera":
@@ -108,7 +132,4 @@ class Camera:
         for key in ("width", "height"):
             if key in data and float(data[key]) != int(data[key]):
                 raise InputError(path, f"{key} must be an integer, got {data[key]!r}")
-        camera = cls(**values)
-        if not (1e-5 <= camera.depth_scale <= 0.1):
-            raise InputError(path, f"depth_scale {camera.depth_scale} m per unit is implausible (expected about 0.001 for millimetres)")
-        return camera
+        return cls(**values).plausible(path)

@@ -22,6 +22,8 @@ from .names import safe_name
 COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
 DEPTH_SUFFIXES = (".png",)
 REDWOOD_NAME = re.compile(r"^(\d+)-(\d+)$")
+#: Median measured depth (metres) a hand-held capture's frames can have.
+PLAUSIBLE_DEPTH = (0.1, 10.0)
 #: Default pairing tolerance: half a frame period of a 30 Hz sensor, microseconds.
 DEFAULT_PAIRING_TOLERANCE_US = 16_667
 
@@ -192,10 +194,22 @@ class Sequence:
         return self.depth_raw(frame).astype(np.float32) * np.float32(self.camera.depth_scale)
 
     def check(self) -> None:
-        """Read every frame once (raises InputError on the first bad one)."""
+        """Read every frame once (raises InputError on the first bad one), then :meth:`check_depth_scale`."""
         for i in range(len(self)):
             self.color(i)
             self.depth_raw(i)
+        self.check_depth_scale()
+
+    def check_depth_scale(self, samples: int = 3) -> None:
+        """Raise InputError unless the measured depth (metres) of a few frames lies mostly within PLAUSIBLE_DEPTH: a
+        depth scale ten times off puts a hand-held object 6 m or 6 cm away."""
+        picks = np.unique(np.linspace(0, len(self) - 1, min(samples, len(self))).round().astype(int))
+        depth = np.concatenate([self.depth(int(i)).reshape(-1) for i in picks])
+        median = float(np.median(depth[depth > 0]))
+        if not PLAUSIBLE_DEPTH[0] <= median <= PLAUSIBLE_DEPTH[1]:
+            source = self.root / "camera.yaml" if (self.root / "camera.yaml").exists() else self.frames[0].depth_path.parent
+            raise InputError(source, f"the measured depth is {median:.3g} m at the median, outside {PLAUSIBLE_DEPTH[0]}-{PLAUSIBLE_DEPTH[1]} m: "
+                                     f"is the depth scale ({self.camera.depth_scale:g} m per unit) right?")
 
 
 def open_sequence(root: str | Path, tolerance_us: int = DEFAULT_PAIRING_TOLERANCE_US) -> Sequence:

@@ -64,22 +64,28 @@ def get_method(spec: str, config: dict | None = None, camera: Camera | None = No
     raise InputError(None, f"unknown method {spec!r}: expected {', '.join(sorted([*BUILTINS, 'oracle']))}, NAME=predictions.jsonl or NAME=module:Class")
 
 
+def _load_module(module_name: str, spec: str):
+    """The module, or InputError in one line when importing it fails (its own code raising anything, exits included)."""
+    try:
+        return importlib.import_module(module_name)
+    except ImportError as error:
+        raise InputError(None, f"method {spec!r} is not available: cannot import {module_name} ({error})") from error
+    except (Exception, SystemExit) as error:  # the module's own code failed while importing
+        raise InputError(None, " ".join(f"method {spec!r}: importing {module_name} raised {error.__class__.__name__}: {error}".split())[:400]) from error
+
+
 def _import(target: str, spec: str):
     module_name, _, attribute = target.partition(":")
     if not module_name or not attribute:
         raise InputError(None, f"method {spec!r}: expected module:Class")
     try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as error:
-        if error.name != module_name.split(".")[0] or str(Path.cwd()) in sys.path:
-            raise InputError(None, f"method {spec!r} is not available: cannot import {module_name} ({error})") from error
+        module = _load_module(module_name, spec)
+    except InputError as error:
+        missing = isinstance(error.__cause__, ModuleNotFoundError) and error.__cause__.name == module_name.split(".")[0]
+        if not missing or str(Path.cwd()) in sys.path:
+            raise
         sys.path.insert(0, str(Path.cwd()))  # console scripts do not search the working folder
-        try:
-            module = importlib.import_module(module_name)
-        except ImportError as error2:
-            raise InputError(None, f"method {spec!r} is not available: cannot import {module_name} ({error2})") from error2
-    except ImportError as error:
-        raise InputError(None, f"method {spec!r} is not available: cannot import {module_name} ({error})") from error
+        module = _load_module(module_name, spec)
     try:
         cls = getattr(module, attribute)
     except AttributeError as error:
@@ -103,7 +109,7 @@ def _from_class(name: str, cls: type, config: dict | None, camera: Camera) -> Sa
         return _construct(name, cls, config, camera)
     except InputError:
         raise
-    except Exception as error:  # a method that cannot start (missing weights, bad config) ends the run in one line
+    except (Exception, SystemExit) as error:  # a method that cannot start (missing weights, bad config) ends the run in one line
         raise InputError(None, f"method {name}: {cls.__module__}.{cls.__name__} could not be constructed ({error.__class__.__name__}: {error})"[:400]) from error
 
 

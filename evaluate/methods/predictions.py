@@ -15,7 +15,6 @@ Lines that cannot be attributed to a sample (not JSON, no sequence/frame) are ke
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ import numpy as np
 
 from evaluate.datasets import Sample
 from evaluate.datasets.redwood75 import frame_id
+from sequences.documents import parse_json
 from sequences.errors import InputError
 
 from .base import Prediction
@@ -64,9 +64,9 @@ class PredictionsFile(SampleMethod):
             if not line.strip():
                 continue
             try:
-                entry = json.loads(line)
-            except json.JSONDecodeError as error:
-                self.problems.append((number, f"not JSON ({error.msg})"))
+                entry = parse_json(line)
+            except ValueError as error:
+                self.problems.append((number, f"not JSON ({error})"))
                 continue
             if not isinstance(entry, dict) or not isinstance(entry.get("sequence"), (str, int)) or not isinstance(entry.get("frame"), (str, int)):
                 self.problems.append((number, "not an object with 'sequence' and 'frame'"))
