@@ -27,6 +27,7 @@ from .app_scene import SceneView
 from .app_state import AppState
 from .app_tracking import TrackingPanel
 from .app_views import draw_box, sensor_view, timeline_image, timeline_legend
+from .origin_guard import LOOPBACK, guard_origins
 
 
 class App:
@@ -238,6 +239,10 @@ def serve(args) -> int:
     sequence.color(0)
     sequence.depth_raw(0)
     sequence.check_depth_scale()
+    guard_origins()  # a page the user visits elsewhere must not drive the tool
+    if args.host not in LOOPBACK:
+        print(f"annotate: warning: serving on {args.host or 'every interface'}: anyone who can reach this machine on the port can "
+              "open and edit the document (use --host 127.0.0.1 to serve this machine only)", flush=True)
     server = viser.ViserServer(host=args.host, port=args.port, label="annotate", verbose=False)
     try:
         app = App(server, sequence, getattr(args, "annotation", None))

@@ -330,3 +330,25 @@ def test_the_tool_opens_sequences_near_and_far(tmp_path, depth_m):
         app.close()
     finally:
         server.stop()
+
+
+def test_websocket_handshakes_from_other_origins_are_refused():
+    """A page elsewhere cannot drive the tool: its Origin is refused; the tool's own page and scripts are let in."""
+    import websockets.exceptions
+    import websockets.sync.client
+
+    from annotate.origin_guard import guard_origins
+
+    guard_origins()
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        port = server.get_port()
+        url = f"ws://127.0.0.1:{port}"
+        for origin in (f"http://127.0.0.1:{port}", f"http://localhost:{port}", None):
+            with websockets.sync.client.connect(url, origin=origin, subprotocols=["viser-v1"], open_timeout=5) as connection:
+                assert connection.protocol is not None
+        with pytest.raises(websockets.exceptions.InvalidStatus) as refused:
+            websockets.sync.client.connect(url, origin="http://evil.example", subprotocols=["viser-v1"], open_timeout=5)
+        assert refused.value.response.status_code == 403
+    finally:
+        server.stop()
