@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import contextlib
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import viser
 
-from sequences.errors import InputError
-from sequences.reader import Sequence, open_sequence
+from sequences.reader import Sequence
 
 from .app_editing import EditingPanel
 from .app_frames import FrameCache
@@ -27,7 +25,6 @@ from .app_scene import SceneView
 from .app_state import AppState
 from .app_tracking import TrackingPanel
 from .app_views import draw_box, sensor_view, timeline_image, timeline_legend
-from .origin_guard import LOOPBACK, guard_origins
 
 
 class App:
@@ -216,50 +213,3 @@ class App:
         self.model.close()
         self.cache.close()
         self.state.close()
-
-
-def resolve_sequence(path: str | None) -> Path:
-    """The sequence folder to serve: the given one, or the bundled sample."""
-    if path is not None:
-        return Path(path)
-    try:
-        from sequences.sample import sample_sequence
-
-        print("annotate: no sequence given: opening the bundled sample (generated on first use)", flush=True)
-        return Path(sample_sequence())
-    except ImportError as error:
-        raise InputError(None, f"no sequence given and the bundled sample is not available ({error}); run: annotate SEQ") from error
-
-
-def serve(args) -> int:
-    """Serve the tool for ``args.sequence`` (None: the bundled sample) until interrupted."""
-    root = resolve_sequence(args.sequence)
-    sequence = open_sequence(root)
-    # read the first frame now: an unreadable sequence is refused before anything is served
-    sequence.color(0)
-    sequence.depth_raw(0)
-    sequence.check_depth_scale()
-    guard_origins()  # a page the user visits elsewhere must not drive the tool
-    if args.host not in LOOPBACK:
-        print(f"annotate: warning: serving on {args.host or 'every interface'}: anyone who can reach this machine on the port can "
-              "open and edit the document (use --host 127.0.0.1 to serve this machine only)", flush=True)
-    server = viser.ViserServer(host=args.host, port=args.port, label="annotate", verbose=False)
-    try:
-        app = App(server, sequence, getattr(args, "annotation", None))
-    except BaseException:
-        server.stop()
-        raise
-    host = "127.0.0.1" if args.host in ("0.0.0.0", "") else args.host
-    print(f"annotate: serving {sequence.root} ({len(sequence)} frames), document {app.state.path}", flush=True)
-    if app.state.read_only:
-        print(f"annotate: {app.state.read_only}", flush=True)
-    print(f"annotate: open http://{host}:{server.get_port()}", flush=True)
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        app.close()
-        server.stop()
-    return 0

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         from .track_command import run_track  # owned by the tracking work (issue 5)
 
         return run_track(args)
-    from .app import serve  # owned by the browser app work (issue 7)
+    from .app_serve import serve  # owned by the browser app work (issue 7)
 
     return serve(args)
 

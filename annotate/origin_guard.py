@@ -1,19 +1,46 @@
-"""The browser tool answers its own pages only: websocket handshakes from another Origin are refused.
+"""The browser tool answers its own pages only: websocket handshakes from another Origin are refused, and beyond
+loopback every request needs the session's token.
 
 A web page the user visits could otherwise open a websocket to ``ws://127.0.0.1:8080`` and drive the tool (edit
 and overwrite documents): browsers send the page's Origin with every handshake but do not stop cross-origin
 websockets. viser opens its server through ``websockets.asyncio.server.serve``; :func:`guard_origins` wraps that
 call so that it passes ``origins``: the tool's own addresses on the bound port (loopback names, and the machine's
 names and addresses when bound beyond loopback), and no Origin at all (a script, not a browser).
+
+Bound beyond loopback, anyone on the network could open the page itself. :func:`require_token` makes a random
+token for a bind address, as Jupyter does; the server then answers a request (the page, its files, the websocket
+handshake) only when it carries the token: ``?token=...`` in its URL, or the cookie the page's answer sets (viser's
+client builds its websocket URL from the page's without the query, and a browser sends the cookie with the
+handshake). The cookie is ``HttpOnly`` and ``SameSite=Strict``, named after the port, as cookies are per host.
 """
 
 from __future__ import annotations
 
+import hmac
+import http
+import inspect
+import ipaddress
 import re
+import secrets
 import socket
+from urllib.parse import parse_qs, urlsplit
 
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
 ALL_INTERFACES = ("", "0.0.0.0", "::")
+#: The URL's query parameter that carries the token.
+TOKEN_PARAMETER = "token"
+#: Tokens required per bind address (the ``host`` given to the server); loopback addresses have none.
+_tokens: dict[str, str] = {}
+
+
+def is_loopback(host: str | None) -> bool:
+    """Whether binding on ``host`` serves this machine only (127.0.0.0/8, ::1, localhost)."""
+    if host in ("localhost", "[::1]"):
+        return True
+    try:
+        return ipaddress.ip_address((host or "").strip("[]")).is_loopback
+    except ValueError:  # a name, or "" (every interface)
+        return False
 
 
 def own_origins(host: str, port: int) -> list:
@@ -36,8 +63,57 @@ def own_origins(host: str, port: int) -> list:
     return [*origins, None]
 
 
+def require_token(host: str) -> str:
+    """The token every server this process binds on ``host`` requires from now on (made once per host)."""
+    return _tokens.setdefault(host or "", secrets.token_urlsafe(24))
+
+
+def cookie_name(port: int) -> str:
+    """The cookie that carries the token of the server on ``port``."""
+    return f"annotate_token_{int(port)}"
+
+
+def _given_tokens(request, port: int) -> tuple[list[str], list[str]]:
+    """(tokens in the request's URL query, tokens in its cookie for ``port``)."""
+    query = parse_qs(urlsplit(request.path).query).get(TOKEN_PARAMETER, [])
+    name = cookie_name(port)
+    cookies = []
+    for header in request.headers.get_all("Cookie"):
+        for part in header.split(";"):
+            key, _, value = part.strip().partition("=")
+            if key == name:
+                cookies.append(value)
+    return query, cookies
+
+
+def _matches(given: list[str], token: str) -> bool:
+    return any(hmac.compare_digest(value.encode(), token.encode()) for value in given)
+
+
+def token_guard(process_request, token: str):
+    """Wrap a websockets ``process_request`` (None: none) so that requests without ``token`` are answered 403; the
+    answer to a request with the token in its URL sets the cookie that carries it."""
+
+    async def guarded(connection, request):
+        port = connection.local_address[1]
+        query, cookies = _given_tokens(request, port)
+        in_query = _matches(query, token)
+        if not (in_query or _matches(cookies, token)):
+            return connection.respond(http.HTTPStatus.FORBIDDEN, "annotate: this server needs its token: open the URL it printed when it "
+                                                                 f"started (with ?{TOKEN_PARAMETER}=...)\n")
+        response = process_request(connection, request) if process_request is not None else None
+        if inspect.isawaitable(response):
+            response = await response
+        if response is not None and in_query:
+            response.headers["Set-Cookie"] = f"{cookie_name(port)}={token}; Path=/; HttpOnly; SameSite=Strict"
+        return response
+
+    return guarded
+
+
 def guard_origins() -> None:
-    """Make every websocket server this process starts refuse handshakes from other Origins (idempotent)."""
+    """Make every websocket server this process starts refuse handshakes from other Origins, and requests without
+    the token where :func:`require_token` made one for its host (idempotent)."""
     import websockets.asyncio.server as server
 
     original = server.serve
@@ -49,6 +125,9 @@ def guard_origins() -> None:
 
         def __init__(self, handler, host=None, port=None, **kwargs):
             kwargs.setdefault("origins", own_origins(host or "", int(port or 0)))
+            token = _tokens.get(host or "")
+            if token is not None:
+                kwargs["process_request"] = token_guard(kwargs.get("process_request"), token)
             super().__init__(handler, host, port, **kwargs)
 
     server.serve = GuardedServe
