@@ -33,18 +33,10 @@ def load_display_frame(sequence: Sequence, index: int, stride: int = 2) -> Displ
     """Read frame ``index`` and back-project every ``stride``-th pixel (rows and columns)."""
     image = sequence.color(index)
     depth = sequence.depth(index)
-    cam = sequence.camera
-    sub = depth[::stride, ::stride]
-    v, u = np.nonzero(sub > 0)
-    z = sub[v, u]
-    u = u * stride
-    v = v * stride
-    points = np.empty((z.size, 3), dtype=np.float32)
-    # float64 intermediates so positions keep sub-millimetre precision before the float32 cast
-    points[:, 0] = (u - cam.cx) / cam.fx * z.astype(np.float64)
-    points[:, 1] = (v - cam.cy) / cam.fy * z.astype(np.float64)
-    points[:, 2] = z
-    colors = image[v, u]
+    cloud, pixels = sequence.camera.backproject(depth, stride=stride)
+    points = cloud.astype(np.float32)  # back-projected in float64: sub-millimetre positions before the cast
+    z = cloud[:, 2]
+    colors = image.reshape(-1, image.shape[-1])[pixels]
     median = float(np.median(z)) if z.size else 1.0
     origin = np.array([0.0, 0.0, median])
     if z.size:

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from evaluate.geometry import BOX_EDGES, box_corners
 
 from .app_frames import DisplayFrame
-from .app_views import AXIS_COLORS, edge_axes, face_corners, sensor_fov
+from .app_views import AXIS_COLORS, TINT_OPACITY, TINTED_FACES, edge_axes, face_corners, sensor_fov
 
 BOX = "/box"
 #: Face handles: (name, axis, sign).
@@ -63,6 +63,7 @@ class SceneView:
         self.scene.set_up_direction("-y")
         self.gizmo = self.scene.add_transform_controls(BOX, scale=0.12, depth_test=False, opacity=0.9)
         self.face_handles: dict[str, viser.TransformControlsHandle] = {}
+        self.tints: dict[str, viser.MeshHandle] = {}  # by TintedFace.name
         self.cloud = None
         self.frustum = None
         self.model = None
@@ -112,7 +113,7 @@ class SceneView:
         self._box_key = key
 
     def _draw_box(self, extents, own_pose: bool) -> None:
-        """Box geometry below the gizmo: axis-coloured edges, tinted up (+y, green) and front / handle side (-z, blue) faces.
+        """Box geometry below the gizmo: axis-coloured edges and the tinted faces (app_views.TINTED_FACES).
 
         A frame without its own pose shows the borrowed box dashed-looking (thin, grey edges).
         """
@@ -124,9 +125,11 @@ class SceneView:
             f"{BOX}/edges", segments.astype(np.float32), np.repeat(colors[:, None, :], 2, axis=1),
             thickness=3.0 if own_pose else 1.5, thickness_units="screen",
         )
-        for name, axis, sign, color in (("up", 1, 1, (70, 220, 90)), ("front", 2, 1, (70, 140, 255))):
-            vertices, faces = box_quad(extents, axis, sign)
-            self.scene.add_mesh_simple(f"{BOX}/{name}", vertices, faces, color=color, opacity=0.35, side="double", cast_shadow=False, receive_shadow=False)
+        for face in TINTED_FACES:
+            vertices, faces = box_quad(extents, face.axis, face.sign)
+            self.tints[face.name] = self.scene.add_mesh_simple(
+                f"{BOX}/{face.name}", vertices, faces, color=face.color, opacity=TINT_OPACITY, side="double", cast_shadow=False, receive_shadow=False
+            )
         if self.extents is None or not np.array_equal(self.extents, extents):
             self.place_face_handles(extents)
         self.extents = extents

@@ -7,6 +7,7 @@ so the sensor sits at the origin looking along +z.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -24,8 +25,23 @@ STATUS_COLORS = {
     "flagged": (225, 45, 45),
     "none": (70, 70, 70),
 }
-#: Faces tinted so that up (+y) and front / handle side (-z, as in REDWOOD75 and NOCS) are clear: (axis, sign, RGBA).
-TINTED_FACES = ((1, 1, (70, 220, 90, 90)), (2, -1, (70, 140, 255, 90)))
+
+
+@dataclass(frozen=True)
+class TintedFace:
+    """A box face drawn filled, in the 3D view and on the colour image alike: object ``axis`` (0 x, 1 y, 2 z), the
+    side ``sign`` (+1, -1), RGB ``color``."""
+
+    name: str
+    axis: int
+    sign: int
+    color: tuple[int, int, int]
+
+
+#: The faces that show which way the box is: up (+y, green) and front / handle side (-z, blue, as in REDWOOD75 and NOCS).
+TINTED_FACES = (TintedFace("up", 1, 1, (70, 220, 90)), TintedFace("front", 2, -1, (70, 140, 255)))
+#: Opacity of the tinted faces (0-1): the points and the image show through.
+TINT_OPACITY = 0.35
 
 
 def edge_axes() -> np.ndarray:
@@ -62,10 +78,11 @@ def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, 
     overlay = Image.new("RGBA", base.size, (0, 0, 0, 0))
     draw = ImageDraw.Draw(overlay)
     in_front = z > 1e-3
-    for axis, sign, rgba in TINTED_FACES:
-        idx = face_corners(axis, sign)
+    alpha = round(255 * TINT_OPACITY)
+    for face in TINTED_FACES:
+        idx = face_corners(face.axis, face.sign)
         if np.all(in_front[idx]):
-            draw.polygon([tuple(map(float, uv[i])) for i in idx], fill=rgba)
+            draw.polygon([tuple(map(float, uv[i])) for i in idx], fill=(*face.color, alpha))
     for (a, b), axis in zip(BOX_EDGES, edge_axes()):
         if in_front[a] and in_front[b]:
             draw.line([tuple(map(float, uv[a])), tuple(map(float, uv[b]))], fill=tuple(int(c) for c in AXIS_COLORS[axis]) + (255,), width=width)

@@ -40,14 +40,13 @@ from annotate.tracking.config import TrackingConfig  # noqa: E402
 from annotate.tracking.engine import track_sequence  # noqa: E402
 from reconstruct.export import export_redwood  # noqa: E402
 from reconstruct.pipeline import Reconstruction, reconstruct_sequence  # noqa: E402
-from sequences.annotation import save_annotation  # noqa: E402
+from sequences.annotation import SYMMETRIC_CATEGORIES, save_annotation  # noqa: E402
 from sequences.atomic import write_text_atomic  # noqa: E402
 from sequences.reader import open_sequence  # noqa: E402
 from sequences.synth import generate_sequence  # noqa: E402
 from sequences.synth.truth import load_truth, truth_annotation  # noqa: E402
 
 CATEGORIES = ("bottle", "bowl", "mug", "can")
-SYMMETRIC = ("bottle", "bowl", "can")
 METHODS = ("box", "template")
 
 
@@ -169,7 +168,7 @@ def build_sequence(category: str, seed: int, args, work: Path) -> dict:
 
     visible = np.array([truth.mask(f).sum() for f in ids], dtype=np.float64)
     rotations = np.stack([truth.poses[f][:3, :3] for f in ids])
-    selected = select_frames(ids, rotations, visible, args.per_sequence, category in SYMMETRIC)
+    selected = select_frames(ids, rotations, visible, args.per_sequence, category in SYMMETRIC_CATEGORIES)
 
     start = time.perf_counter()
     toolkit = dataclasses.replace(reconstruction, poses={f: reconstruction.poses[f] for f in selected})
@@ -177,7 +176,7 @@ def build_sequence(category: str, seed: int, args, work: Path) -> dict:
     truth_dataset_entry(work / "dataset_truth", sequence, truth, selected)
     timings["export_s"] = time.perf_counter() - start
 
-    symmetric = category in SYMMETRIC
+    symmetric = category in SYMMETRIC_CATEGORIES
     all_deg, all_m = pose_errors(truth.poses, reconstruction.poses, symmetric)
     sel_deg, sel_m = pose_errors(truth.poses, toolkit.poses, symmetric)
     flagged = sum(1 for f in tracked.frames.values() if f.extra.get("flagged"))

@@ -3,8 +3,8 @@
 Frames: voxel centres live in the object frame (ShapeNet axes, metres); a pose maps object to
 camera, p_cam = R p_obj + t (OpenCV camera). In each frame a voxel is *seen free* where the
 valid depth pixel its centre projects to lies behind it by more than a tolerance
-``tol_sigmas * sigma(z) + half the voxel diagonal`` (sigma(z) is the structured-light noise model
-below). Missing depth, pixels outside the image and points behind the camera are unknown, never
+``tol_sigmas * sigma(z) + half the voxel diagonal`` (sigma(z) is the structured-light noise model,
+sequences.sensor_noise). Missing depth, pixels outside the image and points behind the camera are unknown, never
 free. A voxel is carved when it is seen free in more than ``k`` frames: a few frames whose pose is
 off by a degree or two millimetres (or whose depth is noisy) can not eat the object, while a hand
 or any occluder that moves relative to the object is seen free in most frames and goes. A veto
@@ -30,6 +30,7 @@ import numpy as np
 from scipy import ndimage
 
 from sequences.camera import Camera
+from sequences.sensor_noise import depth_sigma
 
 from . import pyramid
 
@@ -112,11 +113,6 @@ MIXED_CHUNK = 512
 PYRAMID_TOP = 6
 #: Frames between recomputing which blocks have no voxel left to decide.
 PRUNE_EVERY = 2
-
-
-def depth_sigma(z: np.ndarray | float) -> np.ndarray | float:
-    """Depth noise standard deviation (metres) of a PrimeSense-like sensor at depth ``z`` (metres)."""
-    return 0.0012 + 0.0019 * (z - 0.4) ** 2
 
 
 #: The depth sensor's projector: metres along the camera's +x axis (PrimeSense: 7.5 cm to the right),

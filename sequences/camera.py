@@ -66,24 +66,27 @@ class Camera:
         rays[..., 2] = 1.0
         return rays
 
-    def backproject(self, depth: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def backproject(self, depth: np.ndarray, mask: np.ndarray | None = None, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Back-project a depth image (H, W) in metres (0 or NaN = no measurement).
 
         Returns camera-frame points (N, 3) float64 and their flat pixel indices (N,) into the
-        image, for the valid pixels where ``mask`` (H, W bool) is true.
+        image, for the valid pixels where ``mask`` (H, W bool) is true. With ``stride`` only every
+        ``stride``-th pixel of every ``stride``-th row counts (a decimated cloud; the indices stay
+        those of the full image).
         """
         depth = np.asarray(depth)
-        valid = np.isfinite(depth) & (depth > 0)
+        sub = depth[::stride, ::stride]
+        valid = np.isfinite(sub) & (sub > 0)
         if mask is not None:
-            valid &= np.asarray(mask, dtype=bool)
-        index = np.flatnonzero(valid)
-        v, u = np.divmod(index, depth.shape[1])
-        z = depth.reshape(-1)[index].astype(np.float64)
-        points = np.empty((index.size, 3))
+            valid &= np.asarray(mask, dtype=bool)[::stride, ::stride]
+        v, u = np.nonzero(valid)  # row-major, as the flat indices
+        z = sub[v, u].astype(np.float64)
+        v, u = v * stride, u * stride
+        points = np.empty((z.size, 3))
         points[:, 0] = (u - self.cx) / self.fx * z
         points[:, 1] = (v - self.cy) / self.fy * z
         points[:, 2] = z
-        return points, index
+        return points, v * depth.shape[1] + u
 
     def plausible(self, path: str | Path) -> "Camera":
         """This camera, or InputError naming ``path`` when a value is implausible for an RGB-D camera: focal lengths

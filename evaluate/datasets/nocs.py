@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from evaluate.geometry import matrix_to_quat
+from sequences.annotation import default_symmetry
 from sequences.axes import SHAPENET_FROM_NOCS
 from sequences.camera import Camera
 from sequences.errors import InputError
@@ -32,7 +33,6 @@ from .sample import Sample
 NOCS_CAMERA = Camera(fx=591.0125, fy=590.16775, cx=322.525, cy=244.11084, width=640, height=480, depth_scale=0.001)
 #: NOCS class ids (meta.txt's second column); 0 is a distractor.
 NOCS_CATEGORIES = {1: "bottle", 2: "bowl", 3: "camera", 4: "can", 5: "laptop", 6: "mug"}
-SYMMETRIC = ("bottle", "bowl", "can")
 BACKGROUND = 255
 #: Rotation matrices whose columns' norms differ by more than this (relative) are not a scaled rotation.
 SCALE_TOLERANCE = 1e-3
@@ -162,7 +162,7 @@ class NocsDataset(Dataset):
                     frame=frame,
                     instance=str(instance),
                     category=category,
-                    symmetry="y" if category in SYMMETRIC else "none",
+                    symmetry=default_symmetry(category),
                     position=t,
                     orientation=matrix_to_quat(R @ SHAPENET_FROM_NOCS.T),
                     extents=np.abs(SHAPENET_FROM_NOCS @ extents),

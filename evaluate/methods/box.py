@@ -36,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from evaluate.geometry import matrix_to_quat
+from sequences.annotation import SYMMETRIC_CATEGORIES  # symmetric about object y: x and z extents are one diameter
 from sequences.camera import Camera
 
 from .base import Method, Prediction
@@ -48,8 +49,6 @@ TYPICAL_EXTENTS = {
     "can": np.array([0.066, 0.122, 0.066]),
     "mug": np.array([0.082, 0.096, 0.111]),
 }
-#: Categories rotationally symmetric about object y (their x and z extents are one diameter).
-Y_SYMMETRIC = ("bottle", "bowl", "can")
 #: Fewer valid points than this is no observation.
 MIN_POINTS = 10
 #: Percentiles bounding the robust extent, and the fraction of a uniform spread they cover.
@@ -175,7 +174,7 @@ def fit_box(category: str, points: np.ndarray, rotation: np.ndarray) -> tuple[np
     depth_axis = int(np.argmax(np.abs(view_alignment)))
     typical = TYPICAL_EXTENTS.get(category)
     others = [j for j in range(3) if j != depth_axis]
-    if category in Y_SYMMETRIC and depth_axis != 1:
+    if category in SYMMETRIC_CATEGORIES and depth_axis != 1:
         predicted = extents[2 - depth_axis]  # the silhouette shows the diameter in full
     elif typical is not None:
         predicted = typical[depth_axis] * float(np.median(extents[others] / typical[others]))
@@ -188,7 +187,7 @@ def fit_box(category: str, points: np.ndarray, rotation: np.ndarray) -> tuple[np
             middle[depth_axis] = lo[depth_axis] + predicted / 2
         else:
             middle[depth_axis] = hi[depth_axis] - predicted / 2
-    if category in Y_SYMMETRIC:
+    if category in SYMMETRIC_CATEGORIES:
         diameter = max(extents[0], extents[2])
         extents[0] = extents[2] = diameter
     return centroid + rotation @ middle, extents

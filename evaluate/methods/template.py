@@ -48,14 +48,13 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from evaluate.geometry import matrix_to_quat
+from sequences.annotation import SYMMETRIC_CATEGORIES  # their templates are rotationally symmetric about object y
 from sequences.camera import Camera
 
 from .base import Method, Prediction
 from .box import check_inputs, masked_points
 from .templates import TEMPLATE_CATEGORIES, builtin_template
 
-#: Categories whose template is rotationally symmetric about object y.
-Y_SYMMETRIC = ("bottle", "bowl", "can")
 #: Categories whose shape hardly tells top from bottom (a can): y is turned to the camera's up.
 UP_DOWN_AMBIGUOUS = ("can",)
 #: Fraction of the distance cap below which a depth disagreement is free (noise, binned visibility).
@@ -330,7 +329,7 @@ class TemplateMethod(Method):
         score_points = fit_points[: self.score_points]
         silhouette = _dilated(mask, 3)
         object_depth = np.where(mask & np.isfinite(depth), depth, 0.0)
-        rotations = self._symmetric_rotations if category in Y_SYMMETRIC else self._rotations
+        rotations = self._symmetric_rotations if category in SYMMETRIC_CATEGORIES else self._rotations
 
         scales, translations, scores = self._score_hypotheses(template, observed, score_points, rotations, silhouette, object_depth, camera)
         order = np.argsort(scores)
@@ -346,7 +345,7 @@ class TemplateMethod(Method):
         refined = []
         for k in chosen:
             pose = (scales[k], rotations[k], translations[k])
-            if category not in Y_SYMMETRIC:
+            if category not in SYMMETRIC_CATEGORIES:
                 pose = self._swing_search(template, observed, score_points, pose, silhouette, object_depth, camera)
             pose = self._local_search(template, observed, score_points, pose, silhouette, object_depth, camera, coarse_width, coarse_step)
             refined.append(self._icp(template, fit_points, *pose, self.icp_iterations // 3))

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..sensor_noise import depth_sigma
 from .options import SensorOptions
 from .render import Render
 from .scene import HAND, OBJECT, PERSON, TABLE, WALL, Layout
@@ -41,11 +42,6 @@ AMBIENT = 0.35
 #: The IR camera's focal length (pixels) times the projector baseline (metres), and the disparity step (pixels).
 FOCAL_BASELINE = 580.0 * 0.075
 DISPARITY_STEP = 1.0 / 8.0
-
-
-def depth_sigma(z: np.ndarray | float) -> np.ndarray | float:
-    """Axial depth noise (standard deviation, metres) of a PrimeSense sensor at depth z metres."""
-    return 0.0012 + 0.0019 * (np.asarray(z) - 0.4) ** 2
 
 
 def grazing_dropout_probability(cos_incidence: np.ndarray) -> np.ndarray:
