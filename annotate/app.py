@@ -51,6 +51,8 @@ class App:
         gui = server.gui
         server.gui.configure_theme(control_width="large")
         self.title = gui.add_markdown(f"**{sequence.name}**: {len(sequence)} frames")
+        self.tabs = gui.add_markdown("")  # how many other tabs share this session
+        self._clients: set[int] = set()
         self.message = gui.add_markdown("")
         with gui.add_folder("Frame"):
             self.frame_slider = gui.add_slider("Frame", min=0, max=max(len(sequence) - 1, 1), step=1, initial_value=0)
@@ -87,6 +89,7 @@ class App:
         self.state.subscribe(self._on_change)
         self.state.on_error = self.say
         server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(self._on_disconnect)
         self.redraw("frame")
         if self.state.read_only:
             self.say(self.state.read_only)
@@ -181,7 +184,24 @@ class App:
         self.redraw("frame")
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
+        with self.render_lock:
+            self._clients.add(client.client_id)
+            self._show_tabs()
         self.set_client_view(client)
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        with self.render_lock:
+            self._clients.discard(client.client_id)
+            self._show_tabs()
+
+    def _show_tabs(self) -> None:
+        """Every tab sees the same session: say how many others share it (the count is the same in each tab)."""
+        others = len(self._clients) - 1
+        if others <= 0:
+            self.tabs.content = ""
+        else:
+            self.tabs.content = (f"**{others} other tab{'s' if others > 1 else ''}** open on this session: "
+                                 "all tabs share the document, the frame and undo.")
 
     def set_client_view(self, client: viser.ClientHandle | None) -> None:
         """Put a tab's viewer camera at the sensor, looking at the data with the sensor's field of view."""

@@ -4,6 +4,11 @@ Poses map object to camera coordinates: p_cam = R p_obj + t, with ``position`` =
 centre in the OpenCV camera frame, metres) and ``orientation`` = R as a quaternion x, y, z, w.
 ``extents`` are the full box side lengths along object x, y, z (ShapeNet axes, y up), metres.
 Unknown keys, at the top level and per frame, are kept on save.
+
+What :func:`save_annotation` writes begins with :data:`FIRST_LINE` and ends with :data:`END_MARKER` (YAML comments):
+a file that begins with the first line but lacks the last was cut short (a truncated write or copy) and is refused,
+never read as a shorter valid document. Files without the first line (written before, or by hand) load as ever;
+an empty one (nothing but blanks and comments) is refused.
 """
 
 from __future__ import annotations
@@ -33,6 +38,9 @@ DEFAULT_NAME = "annotation.yaml"
 #: Box sides (metres) a hand-held object can have, and the least depth (metres) of a box's centre in the camera frame.
 EXTENTS_RANGE = (0.001, 2.0)
 MIN_BOX_DEPTH = 0.05
+#: The first and the last line of every document written here (see the module's docstring).
+FIRST_LINE = "# annotation document: whole when its last line is the end marker"
+END_MARKER = "# end of annotation document"
 
 
 def default_symmetry(category: str) -> str:
@@ -205,12 +213,30 @@ def load_annotation(path: str | Path, default_sequence: str | None = None) -> An
     # a SafeLoader that reads every key as text (frame ids like 0000012 stay strings); parsed as YAML
     # whatever the file's suffix, since --annotation may name any file
     data = load_document(path, "annotation document", loader=_KeysAsTextLoader, as_yaml=True)
+    check_whole(path, data)
     return annotation_from_dict(data, path, default_sequence)
 
 
+def check_whole(path: Path, data: Any) -> None:
+    """InputError naming ``path`` when the document is empty (``data``, its parsed content, is None) or was cut short
+    (it begins with :data:`FIRST_LINE` but does not end with :data:`END_MARKER`)."""
+    earlier = "its .bak or .orig beside it may hold the last whole version"
+    if data is None:
+        raise InputError(path, f"the annotation document is empty (an emptied or truncated file); {earlier}")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(path, f"cannot read annotation document ({error.__class__.__name__})") from error
+    lines = [line.rstrip() for line in text.splitlines() if line.strip()]
+    if lines and lines[0] == FIRST_LINE and lines[-1] != END_MARKER:
+        raise InputError(path, f"the annotation document was cut short: its last line is not {END_MARKER!r} (a truncated write "
+                               f"or copy; if you edited it, end it with that line again); {earlier}")
+
+
 def document_text(annotation: Annotation) -> str:
-    """The document as the YAML text ``save_annotation`` writes."""
-    return yaml.safe_dump(annotation.to_dict(), sort_keys=False, default_flow_style=None, width=120)
+    """The document as the YAML text ``save_annotation`` writes, between :data:`FIRST_LINE` and :data:`END_MARKER`."""
+    body = yaml.safe_dump(annotation.to_dict(), sort_keys=False, default_flow_style=None, width=120)
+    return f"{FIRST_LINE}\n{body}{END_MARKER}\n"
 
 
 def save_annotation(annotation: Annotation, path: str | Path, backup: bool = True) -> Path:
