@@ -1,17 +1,20 @@
 """``annotate [SEQ]``: the browser annotation tool (viser).
 
 :class:`App` ties the shared session (:mod:`.app_state`), the display frames (:mod:`.app_frames`),
-the 3D scene (:mod:`.app_scene`), the 2D views (:mod:`.app_views`) and the panels for editing
-(:mod:`.app_editing`), tracking (:mod:`.app_tracking`) and the model (:mod:`.app_model`). All GUI
-and scene elements are the server's, so every browser tab shows the same state; only the viewer
-camera is per tab.
+the 3D scene (:mod:`.app_scene`), the 2D views (:mod:`.app_views`), the guide (:mod:`.app_guide`) and the
+panels for editing (:mod:`.app_editing`), tracking (:mod:`.app_tracking`), review (:mod:`.app_review`) and the
+model (:mod:`.app_model`); :mod:`.app_serve` starts it. All GUI and scene elements are the server's, so every
+browser tab shows the same state; only the viewer camera is per tab. The page counts frames from 1; the session
+(``AppState.frame``) from 0.
 """
 
 from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import viser
@@ -20,11 +23,21 @@ from sequences.reader import Sequence
 
 from .app_editing import EditingPanel
 from .app_frames import FrameCache
+from .app_guide import Hotkey, guide_markdown, key_label
 from .app_model import ModelPanel
+from .app_review import ReviewPanel, mark_fixed, reviewed_count
 from .app_scene import SceneView
 from .app_state import AppState
 from .app_tracking import TrackingPanel
 from .app_views import draw_box, sensor_view, timeline_image, timeline_legend
+
+
+#: The view button's label by state: what a click does (False: not looking through the camera).
+LOOK_LABELS = {False: "Look through camera", True: "Leave camera view"}
+#: Moving the viewer this far (m) from the sensor leaves the view through the camera ...
+LOOK_LEAVE_M = 0.02
+#: ... once this long (s) after entering it (the tab's camera reports from before may still arrive).
+LOOK_SETTLE_S = 1.0
 
 
 class App:
@@ -38,6 +51,8 @@ class App:
         self.render_lock = threading.RLock()
         self._local = threading.local()
         self.look_through = False
+        self._look_since = 0.0  # when the view through the camera was entered (time.monotonic)
+        self.hotkeys: list[Hotkey] = []  # every command's key, for the guide
         first = self.cache.get(0)
         point_size = 1.3 * stride * first.median_depth / sequence.camera.fx  # about the pixel footprint
         self.scene = SceneView(server, sequence.camera, point_size=point_size)
@@ -54,24 +69,30 @@ class App:
         self.tabs = gui.add_markdown("")  # how many other tabs share this session
         self._clients: set[int] = set()
         self.message = gui.add_markdown("")
+        with gui.add_folder("Guide: workflow and hotkeys", expand_by_default=self.state.is_new):
+            self.guide = gui.add_markdown("")
         with gui.add_folder("Frame"):
-            self.frame_slider = gui.add_slider("Frame", min=0, max=max(len(sequence) - 1, 1), step=1, initial_value=0)
-            self.prev_button = gui.add_button("Previous frame", hint="hotkey B")
-            self.next_button = gui.add_button("Next frame", hint="hotkey N")
+            # frames are numbered from 1 on the page, as in the title
+            self.frame_slider = gui.add_slider("Frame", min=1, max=max(len(sequence), 2), step=1, initial_value=1,
+                                               hint=f"frame number, 1 to {len(sequence)}")
+            self.prev_button = gui.add_button(key_label("Previous frame", "B"))
+            self.next_button = gui.add_button(key_label("Next frame", "N"))
             self.timeline = gui.add_image(timeline_image(self.state.statuses(), 0), label="Timeline", format="png")
             gui.add_markdown(timeline_legend())
             self.overlay = gui.add_image(first.image[::2, ::2], label="Colour image and box", format="jpeg", jpeg_quality=85)
         self.editing = EditingPanel(self)
         self.tracking = TrackingPanel(self)
+        self.review = ReviewPanel(self)
         self.model = ModelPanel(self)
         with gui.add_folder("View"):
-            self.look_button = gui.add_button("Look through camera", hint="hotkey H: view from the sensor with its field of view")
+            self.look_button = gui.add_button(key_label(LOOK_LABELS[False], "H"))
             # off at first: seen from the sensor, the frustum's image plane would cover the whole view
             self.frustum_box = gui.add_checkbox("Show camera", initial_value=False, hint="the camera frustum with the colour image")
             # the range follows the data: a sequence 3 m away has points a centimetre apart
             size_mm = round(point_size * 1000 * 2) / 2 if np.isfinite(point_size) else 1.0
             largest = max(10.0, np.ceil(2 * size_mm))
-            self.point_slider = gui.add_slider("Point size (mm)", min=0.5, max=largest, step=0.5, initial_value=float(np.clip(size_mm, 0.5, largest)))
+            self.point_slider = gui.add_slider("Point size (mm)", min=0.5, max=largest, step=0.5, initial_value=float(np.clip(size_mm, 0.5, largest)),
+                                               hint="the points' size in the 3D view")
 
         self.frame_slider.on_update(self._on_slider)
         self.prev_button.on_click(lambda _: self.state.step(-1))
@@ -79,12 +100,11 @@ class App:
         self.look_button.on_click(lambda event: self.look_through_camera(event.client))
         self.frustum_box.on_update(self._on_frustum)
         self.point_slider.on_update(self._on_point_size)
-        for label, key, action in (
-            ("Next frame", "N", lambda: self.state.step(1)),
-            ("Previous frame", "B", lambda: self.state.step(-1)),
-        ):
-            gui.add_command(label, hotkey=key).on_trigger(lambda _, action=action: action())
-        gui.add_command("Look through camera", hotkey="H").on_trigger(lambda event: self.look_through_camera(event.client))
+        self.add_command("Next frame", "N", lambda: self.state.step(1))
+        self.add_command("Previous frame", "B", lambda: self.state.step(-1))
+        self.add_command("Look through camera", "H", self.look_through_camera, with_client=True,
+                         description="view from the sensor, the colour image behind the points; H again, or orbiting, leaves")
+        self.guide.content = guide_markdown(self.hotkeys)
 
         self.state.subscribe(self._on_change)
         self.state.on_error = self.say
@@ -109,6 +129,21 @@ class App:
     def is_syncing(self) -> bool:
         return getattr(self._local, "syncing", False)
 
+    def add_command(self, label: str, key: str, action: Callable, modifier: str | None = None, description: str | None = None,
+                    with_client: bool = False) -> None:
+        """A hotkey (a viser command, also in its palette): ``action()``, or ``action(client)`` with ``with_client``."""
+        command = self.server.gui.add_command(label, hotkey=key, modifier=modifier, description=description)
+        if with_client:
+            command.on_trigger(lambda event: action(event.client))
+        else:
+            command.on_trigger(lambda _: action())
+        self.hotkeys.append(Hotkey(label, key, modifier))
+
+    @staticmethod
+    def key_label(label: str, key: str, modifier: str | None = None) -> str:
+        """A button's label with its hotkey (see app_guide.key_label)."""
+        return key_label(label, key, modifier)
+
     def say(self, text: str) -> None:
         """One line of feedback at the top of the panel (every tab)."""
         self.message.content = text
@@ -126,7 +161,7 @@ class App:
         frame_id = self.state.frame_id
 
         def change(doc) -> None:
-            doc.frames[frame_id] = FramePose(position.copy(), orientation.copy(), source, dict(extra or {}))
+            doc.frames[frame_id] = FramePose(position.copy(), orientation.copy(), source, mark_fixed(doc.frames.get(frame_id), extra or {}))
             if extents is not None:
                 doc.extents = np.asarray(extents, dtype=np.float64).copy()
 
@@ -146,6 +181,8 @@ class App:
                 extents = state.annotation.extents.copy()
                 status = state.status()
                 statuses = state.statuses()
+                review = state.review()
+                reviewed = reviewed_count(state.annotation)
                 annotation = state.annotation
                 category, symmetry = annotation.category, annotation.symmetry
             frame = self.cache.get(index)
@@ -161,19 +198,21 @@ class App:
                 self.overlay.image = image
                 self.timeline.image = timeline_image(statuses, index)
                 with self.syncing():
-                    self.frame_slider.value = index
+                    self.frame_slider.value = index + 1
                     self.editing.sync(extents, category, symmetry)
                 frame_id = self.sequence.frames[index].id
                 note = "" if own else " (no pose yet: showing the nearest frame's box; any edit places it here)"
-                self.title.content = f"**{self.sequence.name}**: frame {index + 1}/{len(self.sequence)}, id {frame_id}, **{status}**{note}"
-                self.tracking.sync(pose, own)
+                checked = f", reviewed ({pose.extra['reviewed']})" if own and pose.extra.get("reviewed") else ""
+                self.title.content = f"**{self.sequence.name}**: frame {index + 1}/{len(self.sequence)}, id {frame_id}, **{status}**{checked}{note}"
+                self.tracking.sync(pose, own, review, index)
+                self.review.sync(review, index, reviewed)
             if self.look_through:
                 self.scene.server.scene.set_background_image(frame.image, format="jpeg")
 
     # --- callbacks -----------------------------------------------------------------------
     def _on_slider(self, event) -> None:
         if not self.is_syncing:
-            self.state.set_frame(int(event.target.value))
+            self.state.set_frame(int(event.target.value) - 1)  # the page counts from 1
 
     def _on_frustum(self, event) -> None:
         if self.scene.frustum is not None:
@@ -188,6 +227,13 @@ class App:
             self._clients.add(client.client_id)
             self._show_tabs()
         self.set_client_view(client)
+        client.camera.on_update(self._on_camera)
+
+    def _on_camera(self, camera) -> None:
+        """Orbiting away from the sensor leaves the view through the camera (its backdrop belongs to the sensor's view)."""
+        if self.look_through and time.monotonic() - self._look_since > LOOK_SETTLE_S:
+            if np.linalg.norm(np.asarray(camera.position) - self.view["position"]) > LOOK_LEAVE_M:
+                self.look_through_camera(None)
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
         with self.render_lock:
@@ -214,15 +260,18 @@ class App:
             client.camera.fov = self.view["fov"]
 
     def look_through_camera(self, client: viser.ClientHandle | None) -> None:
-        """Toggle the view through the sensor: viewer camera at the sensor, the colour image behind the points."""
+        """Toggle the view through the sensor: viewer camera at the sensor, the colour image behind the points. The
+        button's label says what a click does next."""
         self.look_through = not self.look_through
+        self._look_since = time.monotonic()
+        self.look_button.label = key_label(LOOK_LABELS[self.look_through], "H")
         if self.look_through:
             clients = [client] if client is not None else list(self.server.get_clients().values())
             for c in clients:
                 self.set_client_view(c)
             self.scene.frustum.visible = False
             self.server.scene.set_background_image(self.cache.get(self.state.frame).image, format="jpeg")
-            self.say("Looking through the camera (H again to leave).")
+            self.say("Looking through the camera (H again, or orbit, to leave).")
         else:
             self.server.scene.set_background_image(None)
             self.scene.frustum.visible = bool(self.frustum_box.value)

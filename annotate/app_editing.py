@@ -21,6 +21,8 @@ if TYPE_CHECKING:
     from .app import App
 
 NUDGE_STEPS_MM = ("1", "2", "5", "10", "20")
+#: Keys that move the box along its x, y, z: (minus, plus).
+MOVE_KEYS = (("J", "L"), ("K", "I"), ("O", "P"))
 #: Snap upright trusts an estimated symmetry axis only this close to the box's y (degrees).
 MAX_AXIS_SNAP_DEG = 20.0
 
@@ -32,24 +34,26 @@ class EditingPanel:
         self.app = app
         gui = app.server.gui
         with gui.add_folder("Box"):
-            self.category = gui.add_dropdown("Category", CATEGORIES, initial_value=app.state.annotation.category)
+            self.category = gui.add_dropdown("Category", CATEGORIES, initial_value=app.state.annotation.category,
+                                             hint="the object's category; bottle, bowl and can also set symmetry y")
             self.symmetry = gui.add_dropdown("Symmetry", SYMMETRIES, initial_value=app.state.annotation.symmetry, hint="y: rotationally symmetric about object +y")
             e = app.state.annotation.extents * 1000
             self.extent_inputs = [
-                gui.add_number(f"{name} (mm)", initial_value=float(round(v, 1)), min=1.0, max=5000.0, step=0.5)
-                for name, v in zip(("Width x", "Height y", "Depth z"), e)
+                gui.add_number(f"{name} (mm)", initial_value=float(round(v, 1)), min=1.0, max=5000.0, step=0.5, hint=f"the box's full side along object {a}, mm")
+                for name, a, v in zip(("Width x", "Height y", "Depth z"), ("x", "y (up)", "z (front: -z)"), e)
             ]
-            self.step = gui.add_dropdown("Nudge step (mm)", NUDGE_STEPS_MM, initial_value="2")
-            self.move = [gui.add_button_group(f"Move along {a}", ("-", "+")) for a in "xyz"]
-            self.turn90 = gui.add_button_group("Turn 90° about", ("x", "y", "z"))
-            self.flip180 = gui.add_button_group("Flip 180° about", ("x", "y", "z"))
-            self.place = gui.add_button("Place box in this frame", hint="give this frame the box shown (e.g. borrowed from a neighbour)")
-            self.fit = gui.add_button("Fit box to points", hint="hotkey G: shrink or grow the box to the points inside it")
-            self.upright = gui.add_button("Snap upright", hint="symmetric categories: canonical turn about the axis")
+            self.step = gui.add_dropdown("Nudge step (mm)", NUDGE_STEPS_MM, initial_value="2", hint="how far a Move button or key moves the box")
+            self.move = [gui.add_button_group(f"Move along {a}", ("-", "+"), hint=f"along the box's own {a} axis; keys {minus} and {plus}")
+                         for a, (minus, plus) in zip("xyz", MOVE_KEYS)]
+            self.turn90 = gui.add_button_group("Turn 90° about", ("x", "y", "z"), hint="about the box's own axes; keys 4, 5, 6")
+            self.flip180 = gui.add_button_group("Flip 180° about", ("x", "y", "z"), hint="about the box's own axes; keys 1, 2, 3")
+            self.place = gui.add_button("Place box in this frame")
+            self.fit = gui.add_button(app.key_label("Fit box to points", "G"))
+            self.upright = gui.add_button(app.key_label("Snap upright", "U"))
             self.delete = gui.add_button("Remove pose of this frame")
-            self.undo = gui.add_button("Undo", hint="cmd/ctrl+Z")
-            self.redo = gui.add_button("Redo", hint="cmd/ctrl+Y")
-            self.face_box = gui.add_checkbox("Face handles", initial_value=True, hint="drag a face's arrow to move that face")
+            self.undo = gui.add_button(app.key_label("Undo", "Z", "cmd/ctrl"))
+            self.redo = gui.add_button(app.key_label("Redo", "Y", "cmd/ctrl"))
+            self.face_box = gui.add_checkbox("Face handles", initial_value=True, hint="shown: drag a face's arrow to move that face alone")
 
         state = app.state
         self.category.on_update(self._on_category)
@@ -70,21 +74,16 @@ class EditingPanel:
         app.scene.gizmo.on_update(self._on_gizmo)
         self._hook_faces()
 
-        gui = app.server.gui
-        commands = [
-            ("Undo", "Z", "cmd/ctrl", lambda: state.undo()),
-            ("Redo", "Y", "cmd/ctrl", lambda: state.redo()),
-            ("Fit box to points", "G", None, self.fit_to_points),
-            ("Snap upright", "U", None, self.snap_upright),
-        ]
-        for axis, (minus, plus) in enumerate((("J", "L"), ("K", "I"), ("O", "P"))):
-            commands.append((f"Move -{'xyz'[axis]}", minus, None, lambda axis=axis: self.nudge(axis, -1)))
-            commands.append((f"Move +{'xyz'[axis]}", plus, None, lambda axis=axis: self.nudge(axis, 1)))
+        app.add_command("Undo", "Z", lambda: state.undo(), modifier="cmd/ctrl")
+        app.add_command("Redo", "Y", lambda: state.redo(), modifier="cmd/ctrl")
+        app.add_command("Fit box to points", "G", self.fit_to_points, description="shrink or grow the box to the points inside it")
+        app.add_command("Snap upright", "U", self.snap_upright, description="symmetric categories: the box's y on the object's axis, the free turn canonical")
+        for axis, (minus, plus) in enumerate(MOVE_KEYS):
+            app.add_command(f"Move -{'xyz'[axis]}", minus, lambda axis=axis: self.nudge(axis, -1))
+            app.add_command(f"Move +{'xyz'[axis]}", plus, lambda axis=axis: self.nudge(axis, 1))
         for axis in range(3):
-            commands.append((f"Flip 180° about {'xyz'[axis]}", str(axis + 1), None, lambda axis=axis: self.turn(axis, 180.0)))
-            commands.append((f"Turn 90° about {'xyz'[axis]}", str(axis + 4), None, lambda axis=axis: self.turn(axis, 90.0)))
-        for label, key, modifier, action in commands:
-            gui.add_command(label, hotkey=key, modifier=modifier).on_trigger(lambda _, action=action: action())
+            app.add_command(f"Flip 180° about {'xyz'[axis]}", str(axis + 1), lambda axis=axis: self.turn(axis, 180.0))
+            app.add_command(f"Turn 90° about {'xyz'[axis]}", str(axis + 4), lambda axis=axis: self.turn(axis, 90.0))
 
     # --- sync from the state -------------------------------------------------------------
     def sync(self, extents, category: str, symmetry: str) -> None:

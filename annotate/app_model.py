@@ -16,6 +16,8 @@ import numpy as np
 
 from sequences.pointcloud import frame_points
 
+from .app_review import is_flagged
+
 if TYPE_CHECKING:
     from .app import App
 
@@ -67,7 +69,8 @@ class ModelPanel:
             self.show_model = gui.add_checkbox("Show accumulated points", initial_value=False, hint="box-cropped points of the posed frames, in the box")
             self.preview = gui.add_button("Preview mesh", hint=f"carve the posed frames at {PREVIEW_VOXEL * 1000:.0f} mm voxels")
             self.hide_mesh = gui.add_button("Hide mesh")
-            self.out_dir = gui.add_text("Export folder", initial_value=str(Path(seq.root).resolve().parent / f"{seq.name}_gt"))
+            self.out_dir = gui.add_text("Export folder", initial_value=str(Path(seq.root).resolve().parent / f"{seq.name}_gt"),
+                                        hint="annotations.json, the mesh, masks and reports go here (other sequences' files stay)")
             self.export = gui.add_button("Export ground truth", hint="reconstruct at 2 mm and write annotations.json and the mesh")
             self.progress = gui.add_progress_bar(0.0, animated=False)
             self.info = gui.add_markdown("" if reconstruct_module() else "Reconstruct pipeline (reconstruct.pipeline/export) is not installed: preview and export are unavailable.")
@@ -185,8 +188,12 @@ class ModelPanel:
         with self.app.state.lock:
             document = self.app.state.annotation.copy()
         out = Path(str(self.out_dir.value)).expanduser()
+        flagged = sum(1 for pose in document.frames.values() if is_flagged(pose))
         rec = pipeline.reconstruct_sequence(self.app.sequence, document, progress=self._progress)
         path = export.export_redwood(rec, self.app.sequence, document, out)
+        if flagged:
+            return (f"Exported ground truth to {path}. Warning: {flagged} frame{'s are' if flagged > 1 else ' is'} still flagged: "
+                    "their poses are exported unreviewed (Review: fix or accept them, then export again)")
         return f"Exported ground truth to {path}"
 
     def close(self) -> None:

@@ -34,6 +34,8 @@ from sequences.errors import InputError
 from sequences.lock import DocumentLock
 from sequences.reader import Sequence
 
+from .app_review import Flagged, is_flagged, mark_fixed, next_in_review, review_list, review_thresholds
+
 #: Box side length (m) of a new document's first box.
 DEFAULT_BOX_SIZE = 0.10
 #: Half width (px) of the centre window whose median depth places a new document's first box.
@@ -46,14 +48,6 @@ FACING_CAMERA = np.array([0.0, 0.0, 1.0, 0.0])  # 180 degrees about z: x y z w
 STATUSES = ("manual", "tracked", "refined", "flagged", "none")
 
 Listener = Callable[[str], None]
-
-
-def is_flagged(pose: FramePose) -> bool:
-    """Whether the tracking engine flagged this pose for review (``flagged: true`` or a non-empty ``flags``)."""
-    extra = pose.extra
-    if extra.get("reviewed") == "accepted":
-        return False
-    return bool(extra.get("flagged")) or bool(extra.get("flags"))
 
 
 def frame_status(annotation: Annotation, frame_id: str) -> str:
@@ -125,6 +119,7 @@ class AppState:
             self._fingerprint = None
             self.is_new = True  # nothing on disk until the first change
         self._default_position = default_position(sequence, 0)
+        self._thresholds = review_thresholds()
         self.frame = 0
         self.undo_stack: list[Annotation] = []
         self.redo_stack: list[Annotation] = []
@@ -168,15 +163,16 @@ class AppState:
         with self.lock:
             return [frame_status(self.annotation, f.id) for f in self.sequence.frames]
 
+    def review(self) -> list[Flagged]:
+        """The flagged frames, worst first (app_review)."""
+        with self.lock:
+            return review_list(self.annotation, self.sequence.ids, self._thresholds)
+
     def next_flagged(self) -> int | None:
-        """Index of the next flagged frame after the current one (wrapping), or None."""
-        statuses = self.statuses()
-        n = len(statuses)
-        for k in range(1, n + 1):
-            i = (self.frame + k) % n
-            if statuses[i] == "flagged":
-                return i
-        return None
+        """Index of the frame after the current one in the review list (worst first, wrapping; its first when the
+        current frame is not in it), or None when no frame is flagged."""
+        with self.lock:
+            return next_in_review([item.index for item in self.review()], self.frame)
 
     # --- poses -----------------------------------------------------------------------------
     def pose(self, frame_id: str | None = None) -> tuple[FramePose, bool]:
@@ -227,7 +223,7 @@ class AppState:
 
         def change(doc: Annotation) -> None:
             old = doc.frames.get(frame_id)
-            extra = dict(old.extra) if (old is not None and keep_extra) else {}
+            extra = dict(old.extra) if (old is not None and keep_extra) else mark_fixed(old, {})
             doc.frames[frame_id] = FramePose(position.copy(), orientation.copy(), source, extra)
 
         self.edit(change)

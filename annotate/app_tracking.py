@@ -1,5 +1,5 @@
-"""The tracking panel: refine this frame, track a range or everything (in the background, with progress),
-jump to the next flagged frame, accept or reject a tracked pose.
+"""The tracking panel: refine this frame, track a range or everything (in the background, with progress).
+Reviewing the flagged frames is the review panel's (app_review).
 
 The engine is :mod:`annotate.tracking` (issue 5); without it the panel says so and the rest of
 the tool keeps working.
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from sequences.annotation import FramePose
 
-from .app_state import is_flagged
+from .app_review import Flagged, is_flagged
 
 if TYPE_CHECKING:
     from .app import App
@@ -40,47 +40,40 @@ class TrackingPanel:
         self.app = app
         self.worker: threading.Thread | None = None
         self.last_refine_s: float | None = None
+        self._running = False  # a run's progress line stays until its result is in
         n = len(app.sequence)
         gui = app.server.gui
         with gui.add_folder("Tracking"):
-            self.refine = gui.add_button("Refine this frame", hint="hotkey R: register the box to the points and the model of the other frames")
-            self.accept = gui.add_button("Accept pose", hint="hotkey E: the tracked pose is right (clears its flag)")
-            self.reject = gui.add_button("Reject pose", hint="hotkey X: remove the tracked pose of this frame")
-            self.next_flagged = gui.add_button("Next flagged frame", hint="hotkey F")
-            self.range_from = gui.add_number("Track from frame", initial_value=0, min=0, max=max(n - 1, 0), step=1)
-            self.range_to = gui.add_number("Track to frame", initial_value=max(n - 1, 0), min=0, max=max(n - 1, 0), step=1)
+            self.refine = gui.add_button(app.key_label("Refine this frame", "R"))
+            # frame numbers count from 1 on the page
+            self.range_from = gui.add_number("Track from frame", initial_value=1, min=1, max=max(n, 1), step=1, hint="first frame of the range (from 1)")
+            self.range_to = gui.add_number("Track to frame", initial_value=max(n, 1), min=1, max=max(n, 1), step=1, hint=f"last frame of the range (up to {n})")
             self.track_range = gui.add_button("Track range")
             self.track_all = gui.add_button("Track all frames")
             self.progress = gui.add_progress_bar(0.0, animated=False)
             self.info = gui.add_markdown("")
         self.refine.on_click(lambda _: self.refine_current())
-        self.accept.on_click(lambda _: self.accept_current())
-        self.reject.on_click(lambda _: self.reject_current())
-        self.next_flagged.on_click(lambda _: self.goto_next_flagged())
-        self.track_range.on_click(lambda _: self.start_tracking(int(self.range_from.value), int(self.range_to.value)))
+        self.track_range.on_click(lambda _: self.start_tracking(int(self.range_from.value) - 1, int(self.range_to.value) - 1))
         self.track_all.on_click(lambda _: self.start_tracking(0, n - 1))
-        for label, key, action in (
-            ("Refine this frame", "R", self.refine_current),
-            ("Accept pose", "E", self.accept_current),
-            ("Reject pose", "X", self.reject_current),
-            ("Next flagged frame", "F", self.goto_next_flagged),
-        ):
-            gui.add_command(label, hotkey=key).on_trigger(lambda _, action=action: action())
+        app.add_command("Refine this frame", "R", self.refine_current, description="register the box to the points and the model of the other frames")
         if tracking_engine() is None:
             self.info.content = "Tracking engine (annotate.tracking) is not installed: refine and track are unavailable."
 
     # --- shown state ---------------------------------------------------------------------
-    def sync(self, pose: FramePose, own: bool) -> None:
-        """Show the current frame's quality figures and flag."""
-        if self.busy:
+    def sync(self, pose: FramePose, own: bool, review: list[Flagged], index: int) -> None:
+        """Say what the current frame's pose is, and why it is flagged (in words, with its rank in the review list)."""
+        if self._running:
             return
         if not own:
             self.info.content = "No pose in this frame yet."
             return
-        figures = {k: v for k, v in pose.extra.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
-        text = ", ".join(f"{k} {v:.4g}" for k, v in sorted(figures.items()))
-        flag = f"**Flagged**: {pose.extra.get('flag_reason', 'needs review')}. " if is_flagged(pose) else ""
-        self.info.content = f"{flag}{pose.source}{': ' + text if text else ''}"
+        if not is_flagged(pose):
+            self.info.content = f"Pose: {pose.source}."
+            return
+        rank = next((k for k, item in enumerate(review, start=1) if item.index == index), None)
+        where = f" (#{rank} of {len(review)} in the review list)" if rank else ""
+        reason = str(pose.extra.get("flag_reason") or "the tracking engine marked it for review")
+        self.info.content = (f"**Flagged**{where}: {reason}. Fix the box (then Refine), or Accept (E) if it is right.")
 
     @property
     def busy(self) -> bool:
@@ -117,38 +110,7 @@ class TrackingPanel:
         if state.frame_id != frame_id:
             return  # the annotator moved on; a stale result must not land on another frame
         app.commit_box(result.position, result.orientation, source=result.source or "refined", extra=result.extra)
-        app.say(f"Refined frame {frame_id} in {self.last_refine_s * 1000:.0f} ms.")
-
-    def accept_current(self) -> None:
-        """Mark the current frame's pose as reviewed and right (its flag is cleared)."""
-        state = self.app.state
-        frame_id = state.frame_id
-        if frame_id not in state.annotation.frames:
-            self.app.say("This frame has no pose to accept.")
-            return
-
-        def change(doc) -> None:
-            pose = doc.frames[frame_id]
-            pose.extra.pop("flagged", None)
-            pose.extra["reviewed"] = "accepted"
-
-        state.edit(change)
-
-    def reject_current(self) -> None:
-        """Remove the current frame's pose (tracked wrongly); place or track it again."""
-        state = self.app.state
-        frame_id = state.frame_id
-        if frame_id not in state.annotation.frames:
-            self.app.say("This frame has no pose to reject.")
-            return
-        state.edit(lambda doc: doc.frames.pop(frame_id, None))
-
-    def goto_next_flagged(self) -> None:
-        index = self.app.state.next_flagged()
-        if index is None:
-            self.app.say("No flagged frame.")
-        else:
-            self.app.state.set_frame(index)
+        app.say(f"Refined frame {state.frame + 1} (id {frame_id}) in {self.last_refine_s * 1000:.0f} ms.")
 
     def start_tracking(self, first: int, last: int, wait: bool = False) -> bool:
         """Track frames ``first``..``last`` (indices) in a worker thread; the result is one undoable change."""
@@ -164,6 +126,7 @@ class TrackingPanel:
         ids = app.sequence.ids[first : last + 1]
         document = app.state.annotation.copy()
         self.progress.value = 0.0
+        self._running = True
         self.worker = threading.Thread(target=self._track, args=(engine, document, ids), name="tracking", daemon=True)
         self.worker.start()
         if wait:
@@ -183,12 +146,14 @@ class TrackingPanel:
         try:
             result = engine.track_sequence(app.sequence, document, frames=ids, progress=progress)
         except Exception as error:
+            self._running = False
             app.say(f"Tracking failed: {error}")
             self.info.content = ""
             return
         finally:
             for button in (self.track_all, self.track_range, self.refine):
                 button.disabled = False
+        self._running = False
 
         def change(doc) -> None:
             # take the tracked frames; edits made meanwhile to frames outside the range are kept
@@ -196,10 +161,12 @@ class TrackingPanel:
                 if frame_id in result.frames:
                     doc.frames[frame_id] = result.frames[frame_id]
 
+        flagged = sum(1 for f in ids if f in result.frames and is_flagged(result.frames[f]))
+        summary = f"Tracked {len(ids)} frames in {time.perf_counter() - start:.1f} s; {flagged} flagged for review."
+        self.info.content = summary  # the progress line goes; the redraw of the edit then shows the frame's pose
         app.state.edit(change)
         self.progress.value = 100.0
-        flagged = sum(1 for f in ids if f in result.frames and is_flagged(result.frames[f]))
-        app.say(f"Tracked {len(ids)} frames in {time.perf_counter() - start:.1f} s; {flagged} flagged for review.")
+        app.say(summary + (" The Review list holds them, worst first (F: next)." if flagged else ""))
 
     def close(self) -> None:
         pass

@@ -42,7 +42,7 @@ def app(sequence_root, tmp_path):
 def test_next_frame_button_shows_the_next_frame_at_full_precision(app):
     app.next_button.value = True  # what a click does: run the button's callbacks
     assert app.state.frame == 1
-    assert app.frame_slider.value == 1
+    assert app.frame_slider.value == 2  # the page counts frames from 1
     cloud = app.scene.cloud
     shown = np.asarray(cloud.points, dtype=np.float64) + np.asarray(cloud.position)
     truth = load_display_frame(app.sequence, 1, stride=app.cache.stride)
@@ -52,7 +52,7 @@ def test_next_frame_button_shows_the_next_frame_at_full_precision(app):
     np.testing.assert_array_equal(np.asarray(cloud.colors), truth.colors)
     app.prev_button.value = True
     assert app.state.frame == 0
-    app.frame_slider.value = 3
+    app.frame_slider.value = 4
     assert app.state.frame == 3 and "frame 4/4" in app.title.content
 
 
@@ -138,16 +138,16 @@ def test_accept_reject_and_next_flagged(app):
             doc.frames[frame_id] = FramePose(np.array([0, 0, 0.7]), np.array([1.0, 0, 0, 0]), "tracked", {"flagged": k in (1, 3), "flag_reason": "test"})
 
     app.state.edit(change)
-    app.tracking.next_flagged.value = True
+    app.review.next_flagged.value = True
     assert app.state.frame == 1
-    app.tracking.accept.value = True
+    app.review.accept.value = True
     doc = load_annotation(app.state.path)
     assert doc.frames[ids[1]].extra.get("reviewed") == "accepted" and not doc.frames[ids[1]].extra.get("flagged")
-    app.tracking.next_flagged.value = True
+    app.review.next_flagged.value = True
     assert app.state.frame == 3
-    app.tracking.reject.value = True
+    app.review.reject.value = True
     assert ids[3] not in load_annotation(app.state.path).frames
-    app.tracking.next_flagged.value = True
+    app.review.next_flagged.value = True
     assert app.state.frame == 3 and "No flagged" in app.message.content
 
 
@@ -244,7 +244,7 @@ def test_track_all_in_the_background_fills_every_frame(app, sequence_root):
     flagged = sum(bool(doc.frames[f].extra.get("flagged")) for f in ids)
     assert "Tracked 4 frames" in app.message.content and f"{flagged} flagged" in app.message.content
     if flagged:
-        app.tracking.next_flagged.value = True
+        app.review.next_flagged.value = True
         assert app.state.status() == "flagged"
     app.editing.undo.value = True  # the whole run is one undo step
     assert set(load_annotation(app.state.path).frames) == {ids[0], ids[3]}

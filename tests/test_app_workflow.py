@@ -49,7 +49,7 @@ def test_sample_from_scratch_to_exported_ground_truth(sample, tmp_path):
         rng = np.random.default_rng(1)
         placed = [0, len(seq) // 2, len(seq) - 1]
         for index in placed:
-            app.frame_slider.value = index
+            app.frame_slider.value = index + 1  # the page counts frames from 1
             pose = truth["poses"][seq.ids[index]]
             position = np.asarray(pose["position"]) + rng.uniform(-0.003, 0.003, 3)
             turn = Rotation.from_rotvec(np.radians(2.0) * rng.normal(size=3) / np.sqrt(3))

@@ -52,35 +52,40 @@ def sequence(tmp_path):
     return root
 
 
-@pytest.fixture
-def server(sequence, tmp_path):
-    """``annotate SEQ --port 0`` as a subprocess; yields (url, document path); killed at the end."""
-    command = [sys.executable, "-c", "from annotate.cli import entry; entry()", str(sequence), "--port", "0"]
-    log_path = tmp_path / "annotate.log"
+def _start(sequence: Path, log_path: Path, port: int = 0) -> tuple[subprocess.Popen, str]:
+    """``annotate SEQ --port PORT`` as a subprocess, and the URL it printed."""
+    command = [sys.executable, "-c", "from annotate.cli import entry; entry()", str(sequence), "--port", str(port)]
     log = open(log_path, "w")  # a file, not a pipe: nobody reads the server's output while it runs
     process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, text=True)
-    url = None
+    log.close()  # the child holds its own copy
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and process.poll() is None:
         match = re.search(r"open (http://\S+)", log_path.read_text())
         if match:
-            url = match.group(1)
-            break
+            return process, match.group(1)
         time.sleep(0.2)
-    if url is None:
-        process.kill()
-        log.close()
-        pytest.fail("annotate did not print its URL:\n" + log_path.read_text())
+    _stop(process)
+    pytest.fail("annotate did not print its URL:\n" + log_path.read_text())
+
+
+def _stop(process: subprocess.Popen) -> None:
+    process.terminate()
     try:
-        yield url, sequence / "annotation.yaml"
+        process.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+@pytest.fixture
+def server(sequence, tmp_path):
+    """``annotate SEQ --port 0`` as a subprocess; yields a dict: url, document path, process (a restart replaces it)."""
+    process, url = _start(sequence, tmp_path / "annotate.log")
+    running = {"url": url, "document": sequence / "annotation.yaml", "process": process, "sequence": sequence}
+    try:
+        yield running
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-        log.close()
+        _stop(running["process"])
 
 
 def _variance(png: bytes, box: dict) -> float:
@@ -105,7 +110,7 @@ def _wait_for_file_change(path: Path, before: str | None, timeout: float = 120.0
 
 def test_annotate_in_headless_chromium(server, tmp_path):
     sync_playwright = _playwright()
-    url, document = server
+    url, document = server["url"], server["document"]
     before = document.read_text() if document.exists() else None
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
@@ -131,11 +136,18 @@ def test_annotate_in_headless_chromium(server, tmp_path):
             assert box is not None and box["width"] > 100 and box["height"] > 100
             assert _variance(shot, box) > 100.0, "the 3D view is blank"
 
-            # a second tab on the same server sees the same session
+            # a tooltip shows on hovering an input (viser shows none on buttons: their labels carry the keys)
+            page.locator(".mantine-Slider-root").first.hover()
+            page.get_by_text("frame number, 1 to", exact=False).first.wait_for(timeout=30_000)
+            page.get_by_text("Guide: workflow and hotkeys", exact=False).first.wait_for(timeout=30_000)
+
+            # a second tab on the same server sees the same session, and each says so
             other = browser.new_page(viewport={"width": 480, "height": 360})  # small: software WebGL is slow
             other.set_default_timeout(180_000)
             other.goto(url + "/?fixedDpr=0.5")
             other.get_by_text("frame 1/", exact=False).first.wait_for(timeout=120_000)
+            page.get_by_text("1 other tab", exact=False).first.wait_for(timeout=60_000)
+            other.get_by_text("1 other tab", exact=False).first.wait_for(timeout=60_000)
 
             page.get_by_role("button", name="Next frame").first.click()
             page.get_by_text("frame 2/", exact=False).first.wait_for(timeout=120_000)
@@ -162,5 +174,18 @@ def test_annotate_in_headless_chromium(server, tmp_path):
             page.mouse.click(50, 300)  # focus on the 3D view, not on a panel input
             page.keyboard.press("n")
             page.get_by_text("frame 3/", exact=False).first.wait_for()
+
+            # a restart on the same port: the open tab reconnects by itself (viser's client retries every second
+            # while its page has the focus) and shows the new server's session
+            other.close()
+            port = re.search(r":(\d+)", url).group(1)
+            _stop(server["process"])
+            server["process"], again = _start(server["sequence"], tmp_path / "annotate2.log", int(port))
+            assert again == url
+            page.bring_to_front()
+            page.evaluate("window.dispatchEvent(new Event('focus'))")
+            page.get_by_text("frame 1/", exact=False).first.wait_for(timeout=120_000)
+            page.get_by_role("button", name="Next frame").first.click()
+            page.get_by_text("frame 2/", exact=False).first.wait_for(timeout=120_000)
         finally:
             browser.close()

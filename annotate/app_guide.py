@@ -1,0 +1,50 @@
+"""The on-page guide: the workflow in six steps, and the hotkeys (those the panels registered, so it lists every one).
+
+Hotkeys are viser commands (also in its command palette, cmd/ctrl+K); buttons that have one carry it in their label,
+as viser 1.1's client shows no tooltip on buttons (the inputs' tooltips work).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+#: The workflow, one line per step: (step, what to do).
+WORKFLOW = (
+    ("Place", "choose the category and the box's size (Box). In a frame where the object is clear, drag the box onto it: "
+              "the gizmo moves and turns it, a face's arrow moves that face, the Move and Turn buttons step it. "
+              "The green face is the top (+y), the blue one the front, a mug's handle side (-z). Do this in 2-3 frames "
+              "spread over the sequence."),
+    ("Refine", "R registers the box to the frame's points and the other posed frames: a box that is close snaps on."),
+    ("Track", "Track all frames gives every frame a pose from your boxes (your placed boxes are its anchors)."),
+    ("Review", "the Review list holds the flagged frames, worst first: F goes to the next; fix the box (then R), or "
+               "accept it (E) when it is right, or reject it (X)."),
+    ("Preview", "Model and export > Preview mesh carves the posed frames: do the boxes agree?"),
+    ("Export", "Export ground truth writes annotations.json and the mesh (REDWOOD75's format)."),
+)
+
+
+@dataclass(frozen=True)
+class Hotkey:
+    """A command's key: ``label`` (what it does), ``key`` (a letter or digit), ``modifier`` (viser's, e.g. "cmd/ctrl")."""
+
+    label: str
+    key: str
+    modifier: str | None = None
+
+    @property
+    def shown(self) -> str:
+        """The key as the page writes it: "N", "Ctrl+Z"."""
+        return f"{'Ctrl+' if self.modifier == 'cmd/ctrl' else ''}{self.key}"
+
+
+def key_label(label: str, key: str, modifier: str | None = None) -> str:
+    """A button's label with its hotkey: "Next frame (N)"."""
+    return f"{label} ({Hotkey(label, key, modifier).shown})"
+
+
+def guide_markdown(hotkeys: list[Hotkey]) -> str:
+    """The guide: numbered workflow steps, then the hotkeys, two columns."""
+    steps = "\n".join(f"{k}. **{step}**: {text}" for k, (step, text) in enumerate(WORKFLOW, start=1))
+    rows = "\n".join(f"| {h.shown} | {h.label} |" for h in hotkeys)
+    return (f"{steps}\n\nFrames are numbered from 1. Every change is saved at once; Ctrl+Z undoes it.\n\n"
+            f"| key | action |\n|---|---|\n{rows}\n\nClick the 3D view first, so that the keys do not go to a field.")
