@@ -6,6 +6,8 @@ import argparse
 
 from sequences.errors import run_cli
 
+from .engines import DEFAULT_ENGINE, ENGINES
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="annotate", description="Annotate an RGB-D sequence with oriented boxes in the browser, or track headless.")
@@ -23,6 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="with --track: processes for the independent work (the chains, the refinement's registrations); "
                              "default: the cores available, at most 4; the poses are the same for any N")
+    parser.add_argument("--engine", choices=ENGINES, default=None,
+                        help=f"with --track: the tracking engine (default {DEFAULT_ENGINE}, or $REDWOOD_GT_ENGINE; see docs/tracking.md)")
     return parser
 
 
@@ -33,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--placement-sigma applies to --track only")
     if not args.facing and not args.track:
         parser.error("--no-facing applies to --track only")
+    if args.engine is not None and not args.track:
+        parser.error("--engine applies to --track only")
     if args.workers is not None and not args.track:
         parser.error("--workers applies to --track only")
     if args.workers is not None and args.workers < 1:

@@ -40,7 +40,7 @@ def _track_locked(args, sequence, path, sigma) -> int:
     """Track and write the document, its lock held."""
     from tqdm import tqdm
 
-    from .tracking import TrackingConfig, track_sequence
+    from .engines import engine_name, tracking_engine
 
     annotation, read_as = load_checked(path, default_sequence=sequence.name)
     if not annotation.frames:
@@ -48,12 +48,9 @@ def _track_locked(args, sequence, path, sigma) -> int:
     unknown = sorted(set(annotation.frames) - set(sequence.ids))
     if unknown:
         raise InputError(path, f"frame {unknown[0]} is not in the sequence {sequence.root}")
-    config = TrackingConfig()
-    if sigma is not None:
-        config.manual_rotation_sigma_deg, config.manual_translation_sigma = sigma[0], sigma[1] / 1000
-    config.registration.facing = bool(getattr(args, "facing", True))
-    if getattr(args, "workers", None) is not None:
-        config.workers = int(args.workers)
+    name = engine_name(getattr(args, "engine", None))
+    track_sequence = tracking_engine(name).track_sequence
+    config = _config(name, args, sigma)
     # a terminal redraws the bar in place; a log (a batch job) gets a line every few seconds, not every step
     interactive = sys.stderr.isatty()
     bar = tqdm(total=1, unit="step", desc=f"tracking {sequence.name}", file=sys.stderr, dynamic_ncols=True, mininterval=0.1 if interactive else 5.0)
@@ -77,3 +74,23 @@ def _track_locked(args, sequence, path, sigma) -> int:
         f"{len(flagged)} flagged for review; wrote {path}"
     )
     return 0
+
+
+def _config(engine: str, args, sigma) -> object:
+    """The engine's settings from the command line: the placement sigma (deg, mm), and the chains' own options."""
+    if engine == "graph":
+        from dataclasses import replace
+
+        from .estimator import EstimatorConfig
+
+        config = EstimatorConfig()
+        return config if sigma is None else replace(config, anchor_sigma_deg=sigma[0], anchor_sigma_m=sigma[1] / 1000)
+    from .tracking import TrackingConfig
+
+    config = TrackingConfig()
+    if sigma is not None:
+        config.manual_rotation_sigma_deg, config.manual_translation_sigma = sigma[0], sigma[1] / 1000
+    config.registration.facing = bool(getattr(args, "facing", True))
+    if getattr(args, "workers", None) is not None:
+        config.workers = int(args.workers)
+    return config

@@ -1,0 +1,34 @@
+"""The two tracking engines behind one switch, while they are compared (docs/tracking.md).
+
+``graph`` (annotate.estimator): chains, one pose graph over all frames solved by GTSAM, rounds against the model of
+all frames. ``chains`` (annotate.tracking): the earlier engine of chains, blends and per-shape corrections. Both
+offer ``track_sequence(sequence, annotation, frames=None, config=None, progress=None)`` and ``refine_frame``.
+"""
+
+from __future__ import annotations
+
+import os
+from types import ModuleType
+
+ENGINES = ("graph", "chains")
+#: the engine used unless ``--engine`` or $REDWOOD_GT_ENGINE names another
+DEFAULT_ENGINE = "chains"
+
+
+def engine_name(name: str | None = None) -> str:
+    """``name``, else $REDWOOD_GT_ENGINE, else the default; ValueError for an unknown one."""
+    chosen = name or os.environ.get("REDWOOD_GT_ENGINE") or DEFAULT_ENGINE
+    if chosen not in ENGINES:
+        raise ValueError(f"unknown tracking engine {chosen!r}: choose one of {', '.join(ENGINES)}")
+    return chosen
+
+
+def tracking_engine(name: str | None = None) -> ModuleType:
+    """The module of the engine ``name`` (see :func:`engine_name`)."""
+    if engine_name(name) == "graph":
+        from . import estimator
+
+        return estimator
+    from . import tracking
+
+    return tracking

@@ -1,0 +1,249 @@
+"""From a few boxes a person placed to a pose in every frame: chains, one pose graph, and rounds against the model.
+
+``track_sequence``:
+1. anchors: every frame whose box a person placed, refined or accepted;
+2. front end: from each anchor a chain runs forward and backward to the next anchor (or the end); each frame is
+   cropped at the pose the chain predicts (constant velocity), and registered to the model of the anchor's and the
+   chain's last frames; consecutive registered frames give a chain step (their relative pose, its information);
+3. back end: one pose graph of the chain steps, the anchors and the motion prior (graph.py), then the common
+   correction that best fits the anchors (the object frame is theirs; the data fix only poses relative to it);
+4. rounds: the model of all frames is fused at the solved poses, without what other frames see through (a hand);
+   every frame is registered to it, and the graph solved again with those registrations; until no frame moves
+   more than ``settled_*`` or ``rounds`` are done;
+5. flags from the estimate: the registration's fitness, the graph's marginal standard deviation, and how far the
+   graph pulled the frame from its registration, each with its reason in words.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sequences.annotation import Annotation, FramePose
+from sequences.reader import Sequence
+
+from .config import EstimatorConfig
+from .graph import Factor, Solution, sigmas, solve
+from .model import fuse, fused_model
+from .observations import Crop, FrameCrops
+from .registration import Registration, register
+from .review import frame_figures
+
+Progress = Callable[[int, int], None]
+
+
+def anchor_frames(annotation: Annotation, ids: list[str]) -> list[str]:
+    """The frames of ``ids`` whose box a person placed (manual), refined, or accepted in review, in order."""
+    def kept(pose: FramePose) -> bool:
+        return pose.source in ("manual", "refined") or pose.extra.get("reviewed") == "accepted"
+
+    return [f for f in ids if f in annotation.frames and kept(annotation.frames[f])]
+
+
+def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:
+    if frames is None:
+        return list(sequence.ids)
+    wanted = {str(f) for f in frames}
+    return [f for f in sequence.ids if f in wanted]
+
+
+def _object_part(crop: Crop, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A crop's points and normals in the object frame of ``pose``."""
+    return (crop.points - pose[:3, 3]) @ pose[:3, :3], crop.normals @ pose[:3, :3]
+
+
+class _Setup:
+    """What every step reads: the crops, the box grown for cropping, the frame order and the settings."""
+
+    def __init__(self, sequence: Sequence, annotation: Annotation, ids: list[str], config: EstimatorConfig) -> None:
+        self.config, self.ids = config, ids
+        self.index = {f: k for k, f in enumerate(ids)}
+        self.crops = FrameCrops(sequence, config.stride, config.voxel_for(annotation.extents))
+        self.half = np.asarray(annotation.extents, dtype=np.float64) / 2 * (1 + config.crop_slack) + config.crop_margin
+        self.symmetric = annotation.symmetry == "y"
+        #: a registration's pull towards the pose it starts from: the motion sigma (the start is a prediction)
+        self.motion_prior = np.diag(1.0 / sigmas(config.motion_sigma_deg, config.motion_sigma_m) ** 2)
+
+    def crop(self, frame_id: str, pose: np.ndarray, thin: bool = True) -> Crop:
+        return self.crops.crop(frame_id, pose, self.half, self.config.max_points if thin else 0, seed=self.index[frame_id])
+
+
+def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anchor_parts: list, done: Callable[[], None]) -> tuple[dict[str, np.ndarray], list[Factor]]:
+    """Poses along ``order`` from the anchor ``start`` (pose ``placed``), and the chain steps between registered frames.
+
+    The chain's model holds every anchor's points at its placed pose (``anchor_parts``, object frame) and the chain's
+    last frames: a model of the frames seen so far covers little of an object that turns new surfaces to the
+    camera, and the points of those surfaces then pair with its edges and hold the pose back (a bowl turning 7 deg a
+    frame was followed by half of that)."""
+    config = setup.config
+    recent: deque = deque(maxlen=config.chain_model_frames)
+    model = fuse(anchor_parts, setup.crops.voxel)
+    poses, steps = {}, []
+    last_id, last_pose = start, placed
+    previous, before = placed, None
+    for frame_id in order:
+        predicted = previous if before is None else (previous @ np.linalg.inv(before)) @ previous
+        crop = setup.crop(frame_id, predicted)
+        result = register(crop, model, predicted, config, setup.motion_prior)
+        if result.ok and result.fitness >= config.min_fitness / 2:
+            pose = result.pose
+            steps.append(Factor(setup.index[last_id], setup.index[frame_id], np.linalg.inv(last_pose) @ pose, result.information))
+            last_id, last_pose = frame_id, pose
+            recent.append(_object_part(crop, pose))
+            model = fuse([*anchor_parts, *recent], setup.crops.voxel)
+        else:
+            pose = predicted  # the object lost (hidden, out of view): the motion carries the chain on
+        before, previous = previous, pose
+        poses[frame_id] = pose
+        done()
+    return poses, steps
+
+
+def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray], done: Callable[[], None]) -> tuple[np.ndarray, list[Factor]]:
+    """Initial poses (n, 4, 4), each frame from the chain of its nearest anchor, and every chain's steps."""
+    ids, index = setup.ids, setup.index
+    marks = [index[a] for a in anchors]
+    initial = np.empty((len(ids), 4, 4))
+    nearest = np.full(len(ids), np.inf)
+    steps: list[Factor] = []
+    anchor_parts = [_object_part(setup.crop(a, placed[a], thin=False), placed[a]) for a in anchors]
+    for n, (a, mark) in enumerate(zip(anchors, marks)):
+        initial[mark], nearest[mark] = placed[a], 0
+        after = ids[mark + 1 : marks[n + 1]] if n + 1 < len(marks) else ids[mark + 1 :]
+        before = ids[marks[n - 1] + 1 : mark][::-1] if n > 0 else ids[:mark][::-1]
+        for order in (after, before):
+            poses, chain_steps = _chain(setup, a, placed[a], order, anchor_parts, done)
+            steps += chain_steps
+            for frame_id, pose in poses.items():
+                distance = abs(index[frame_id] - mark)
+                if distance < nearest[index[frame_id]]:
+                    initial[index[frame_id]], nearest[index[frame_id]] = pose, distance
+    return initial, steps
+
+
+def common_correction(poses: np.ndarray, anchors: dict[int, np.ndarray]) -> np.ndarray:
+    """``poses`` (n, 4, 4) moved by the one object-frame transform G that best fits the anchors (T_a G ~ P_a): the
+    mean rotation and the mean translation of their corrections T_a^-1 P_a."""
+    corrections = np.stack([np.linalg.inv(poses[k]) @ placed for k, placed in anchors.items()])
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_matrix(corrections[:, :3, :3]).mean().as_matrix()
+    G[:3, 3] = corrections[:, :3, 3].mean(axis=0)
+    return poses @ G
+
+
+def _moved(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """The largest rotation (deg) and translation (m) between two pose stacks (n, 4, 4)."""
+    relative = np.linalg.inv(a) @ b
+    degrees = np.degrees(np.linalg.norm(Rotation.from_matrix(relative[:, :3, :3]).as_rotvec(), axis=1))
+    return float(degrees.max()), float(np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1).max())
+
+
+def _solve(setup: _Setup, initial: np.ndarray, registrations: list[Factor], steps: list[Factor], anchors: dict[int, np.ndarray]) -> Solution:
+    config = setup.config
+    return solve(initial, registrations, steps, anchors, sigmas(config.anchor_sigma_deg, config.anchor_sigma_m),
+                 sigmas(config.motion_sigma_deg, config.motion_sigma_m), setup.symmetric, config.robust_k)
+
+
+def track_sequence(
+    sequence: Sequence,
+    annotation: Annotation,
+    frames: list[str] | None = None,
+    config: EstimatorConfig | None = None,
+    progress: Progress | None = None,
+) -> Annotation:
+    """A new document with a pose for every frame of ``frames`` (default: all) from the anchors (see the module notes).
+
+    Anchors keep their box and source; the other frames get ``source: tracked``, their figures as extra keys, and
+    ``flagged: true`` with ``flag_reason`` where the estimate itself says it is weak. Raises ValueError when the range
+    holds no anchor.
+    """
+    config = (config or EstimatorConfig()).check()
+    ids = _ordered_range(sequence, frames)
+    anchors = anchor_frames(annotation, ids)
+    if not anchors:
+        raise ValueError("no frame in the range has a box: place a box in at least one frame first")
+    setup = _Setup(sequence, annotation, ids, config)
+    placed = {a: annotation.frames[a].matrix for a in anchors}
+    anchored = {setup.index[a]: placed[a] for a in anchors}
+    total = len(ids) - len(anchors) + config.rounds * len(ids)
+    count = [0]
+
+    def done() -> None:
+        count[0] += 1
+        if progress is not None:
+            progress(min(count[0], total), total)
+
+    # 2-3: the chains, one graph of their steps, the anchors' frame
+    initial, steps = _front_end(setup, anchors, placed, done)
+    poses = common_correction(_solve(setup, initial, [], steps, anchored).poses, anchored)
+    # 4: rounds against the model of all frames
+    registrations: dict[str, Registration] = {}
+    solution = None
+    for _ in range(config.rounds):
+        parts = {f: setup.crop(f, poses[setup.index[f]], thin=False) for f in ids}
+        at = {f: poses[setup.index[f]] for f in ids}
+        model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
+        registrations = {}
+        for f in ids:
+            registrations[f] = register(setup.crop(f, at[f]), model, at[f], config, setup.motion_prior)
+            done()
+        factors = [Factor(setup.index[f], None, r.pose, r.information) for f, r in registrations.items() if r.ok]
+        solution = _solve(setup, poses, factors, steps, anchored)
+        new = common_correction(solution.poses, anchored)
+        degrees, metres = _moved(poses, new)
+        poses = new
+        if degrees < config.settled_deg and metres < config.settled_m:
+            break
+    if progress is not None:
+        progress(total, total)
+    # 5: the document
+    out = annotation.copy()
+    for k, frame_id in enumerate(ids):
+        registration = registrations.get(frame_id)
+        figures = frame_figures(poses[k], registration, None if solution is None else solution.covariances[k], setup.symmetric, config)
+        if frame_id in placed:
+            old = annotation.frames[frame_id]
+            extra = {key: v for key, v in old.extra.items() if key not in ("flagged", "flag_reason")}
+            extra.update({key: v for key, v in figures.items() if key not in ("flagged", "flag_reason")})
+            out.frames[frame_id] = FramePose(old.position.copy(), old.orientation.copy(), old.source, extra)
+        else:
+            out.frames[frame_id] = FramePose.from_matrix(poses[k], "tracked", figures)
+    return out
+
+
+def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, config: EstimatorConfig | None = None) -> FramePose:
+    """One frame's box registered to the model of the nearest other posed frames (source ``refined``).
+
+    Starts from the frame's pose, or the nearest posed frame's. Where its points do not fit the model (fitness
+    below ``min_fitness``) the box is returned where it was, flagged, with the reason and what to do.
+    Raises ValueError when no frame is posed.
+    """
+    config = (config or EstimatorConfig()).check()
+    ids = list(sequence.ids)
+    frame_id = str(frame_id)
+    if frame_id not in ids:
+        raise ValueError(f"frame {frame_id!r} is not in the sequence")
+    others = sorted((f for f in annotation.frames if f != frame_id and f in ids), key=lambda f: abs(ids.index(f) - ids.index(frame_id)))
+    if frame_id in annotation.frames:
+        start = annotation.frames[frame_id].matrix
+    elif others:
+        start = annotation.frames[others[0]].matrix
+    else:
+        raise ValueError("no posed frame to start from: place a box first")
+    setup = _Setup(sequence, annotation, ids, config)
+    sources = others[: config.chain_model_frames] or [frame_id]
+    at = {f: (annotation.frames[f].matrix if f != frame_id else start) for f in sources}
+    parts = {f: setup.crop(f, at[f], thin=False) for f in sources}
+    model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
+    result = register(setup.crop(frame_id, start), model, start, config)
+    figures = frame_figures(result.pose, result, None, setup.symmetric, config)
+    if not result.ok or result.fitness < config.min_fitness:
+        figures["flagged"] = True
+        share = 0.0 if not result.ok else result.fitness
+        figures["flag_reason"] = (f"only {share:.0%} of the points in the box fit the object seen in the other frames: "
+                                  "move the box onto the object and refine again")
+        return FramePose.from_matrix(start, "refined", figures)
+    return FramePose.from_matrix(result.pose, "refined", figures)

@@ -1,0 +1,63 @@
+"""A frame's figures and flag, read from the estimate itself: fitness, marginal uncertainty, and the graph's pull.
+
+Figures (document keys): ``fitness`` (share of the frame's points in the box that pair with the model), ``rmse_mm``
+(their RMS point-to-plane residual), ``sigma_deg`` and ``sigma_mm`` (the graph's marginal standard deviation along
+the frame's weakest rotation and translation; for symmetry y the rotation about y is left out), ``pull_deg`` and
+``pull_mm`` (how far the solved pose lies from the frame's own registration). A frame is flagged, with the reason
+in words, when one of them passes its limit in :class:`EstimatorConfig`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .config import EstimatorConfig
+from .registration import Registration
+
+
+def rotation_deg(a: np.ndarray, b: np.ndarray, symmetric: bool) -> float:
+    """Degrees between the rotations of poses ``a`` and ``b`` (4x4); for symmetry y, between their y axes."""
+    if symmetric:
+        return float(np.degrees(np.arccos(np.clip(a[:3, 1] @ b[:3, 1], -1.0, 1.0))))
+    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).as_rotvec())))
+
+
+def marginal_sigmas(covariance: np.ndarray, symmetric: bool) -> tuple[float, float]:
+    """Largest standard deviation of rotation (deg) and translation (m) in a (w, v) covariance (6, 6)."""
+    rotation = covariance[:3, :3]
+    if symmetric:
+        rotation = rotation[np.ix_([0, 2], [0, 2])]
+    deg = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(rotation).max(), 0.0))))
+    metres = float(np.sqrt(max(np.linalg.eigvalsh(covariance[3:, 3:]).max(), 0.0)))
+    return deg, metres
+
+
+def frame_figures(pose: np.ndarray, registration: Registration | None, covariance: np.ndarray | None, symmetric: bool, config: EstimatorConfig) -> dict:
+    """The figures of a frame with final ``pose``, and ``flagged``/``flag_reason`` where they pass the limits."""
+    figures: dict = {}
+    reasons: list[str] = []
+    if registration is not None:
+        figures["fitness"] = round(float(registration.fitness), 3)
+        figures["rmse_mm"] = round(1000 * float(registration.rmse), 2) if np.isfinite(registration.rmse) else None
+        if not registration.ok:
+            reasons.append("no depth of the object in the box: it is hidden or out of view, and the motion alone places it")
+        elif registration.fitness < config.min_fitness:
+            reasons.append(f"only {registration.fitness:.0%} of the points in the box fit the object: a hand or another "
+                           "surface covers it, or the box is off it")
+        if registration.ok:
+            pull_deg, pull_m = rotation_deg(pose, registration.pose, symmetric), float(np.linalg.norm(pose[:3, 3] - registration.pose[:3, 3]))
+            figures["pull_deg"], figures["pull_mm"] = round(pull_deg, 2), round(1000 * pull_m, 2)
+            if pull_deg > config.max_disagreement[0] or pull_m > config.max_disagreement[1]:
+                reasons.append(f"its own points and its neighbours disagree by {pull_deg:.1f}° and {1000 * pull_m:.1f} mm")
+    if covariance is not None:
+        deg, metres = marginal_sigmas(covariance, symmetric)
+        figures["sigma_deg"], figures["sigma_mm"] = round(deg, 2), round(1000 * metres, 2)
+        if deg > config.max_uncertainty[0]:
+            reasons.append(f"the shape seen here does not fix its rotation (±{deg:.1f}°): the motion carries it")
+        if metres > config.max_uncertainty[1]:
+            reasons.append(f"the shape seen here does not fix its position (±{1000 * metres:.1f} mm): the motion carries it")
+    if reasons:
+        figures["flagged"] = True
+        figures["flag_reason"] = "; ".join(reasons)
+    return figures

@@ -1,0 +1,223 @@
+"""The graph estimator (annotate.estimator): its pose graph against known poses, its ICP against a known motion,
+the information it reports, which boxes are anchors, and a rendered sequence tracked end to end."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+from test_tracking_render import mug_mesh, render_sequence
+
+from annotate.engines import engine_name, tracking_engine
+from annotate.estimator import EstimatorConfig, anchor_frames, refine_frame, track_sequence
+from annotate.estimator.graph import Factor, sigmas, solve, without_spin
+from annotate.estimator.model import fuse
+from annotate.estimator.observations import Crop
+from annotate.estimator.registration import Model, offset, register, retract
+from sequences.annotation import Annotation, FramePose, load_annotation, save_annotation
+from sequences.reader import open_sequence
+
+
+def _walk(n: int, seed: int = 0) -> np.ndarray:
+    """n smooth poses (n, 4, 4) of an object 0.6 m in front of the camera."""
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (n, 3)), axis=0)).as_matrix()
+    T[:, :3, 3] = np.cumsum(rng.normal(0, 0.004, (n, 3)), axis=0) + [0, 0, 0.6]
+    return T
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.linalg.norm(Rotation.from_matrix(np.transpose(a[:, :3, :3], (0, 2, 1)) @ b[:, :3, :3]).as_rotvec(), axis=1))
+
+
+def test_graph_recovers_poses_from_exact_steps_and_one_anchor():
+    truth = _walk(40)
+    info = np.diag([1e5] * 3 + [1e8] * 3)
+    steps = [Factor(i, i + 1, np.linalg.inv(truth[i]) @ truth[i + 1], info) for i in range(39)]
+    start = np.tile(truth[0], (40, 1, 1))  # every frame starts at the first pose: up to tens of degrees off
+    solution = solve(start, [], steps, {0: truth[0]}, sigmas(3, 0.005), sigmas(1.5, 0.003), False, 2.0)
+    assert _angles(solution.poses, truth).max() < 0.05
+    assert np.abs(solution.poses[:, :3, 3] - truth[:, :3, 3]).max() < 1e-4
+    # the marginals grow with the distance from the anchor (a chain of relative measurements)
+    sd = np.sqrt(solution.covariances[:, 3, 3])
+    assert sd[39] > sd[1]
+
+
+def test_graph_registrations_fix_poses_and_an_outlier_is_held_by_the_robust_kernel():
+    truth = _walk(30, seed=1)
+    info = np.diag([1e4] * 3 + [1e7] * 3)
+    measured = truth.copy()
+    measured[12] = retract(truth[12], np.array([0.3, 0, 0, 0.05, 0, 0]))  # a registration 17 deg and 5 cm off
+    regs = [Factor(i, None, measured[i], info) for i in range(30)]
+    steps = [Factor(i, i + 1, np.linalg.inv(truth[i]) @ truth[i + 1], info) for i in range(29)]
+    solution = solve(truth.copy(), regs, steps, {}, sigmas(3, 0.005), sigmas(1.5, 0.003), False, 2.0)
+    assert _angles(solution.poses, truth)[12] < 0.5
+    assert np.linalg.norm(solution.poses[12, :3, 3] - truth[12, :3, 3]) < 0.002
+
+
+def test_symmetry_removes_the_spin_from_the_factors():
+    truth = _walk(20, seed=2)
+    info = np.diag([1e5] * 3 + [1e8] * 3)
+    spun = truth.copy()
+    for k in range(20):  # registrations that spun the object about its y by up to 40 deg: a symmetric one fits as well
+        spun[k] = retract(truth[k], np.array([0, np.radians(2 * k), 0, 0, 0, 0]))
+    regs = [Factor(k, None, spun[k], info) for k in range(20)]
+    solution = solve(truth.copy(), regs, [], {0: truth[0]}, sigmas(3, 0.005), sigmas(1.5, 0.003), True, 2.0)
+    y_true, y_solved = truth[:, :3, 1], solution.poses[:, :3, 1]
+    assert np.degrees(np.arccos(np.clip(np.sum(y_true * y_solved, axis=1), -1, 1))).max() < 0.05
+    removed = without_spin(info)
+    assert removed[1, 1] < 1e-8 * np.trace(info) and removed[0, 0] == info[0, 0]
+
+
+def _box_model(half=(0.05, 0.03, 0.04), spacing=0.003) -> Model:
+    """Points and outward normals on the faces of a box (object frame)."""
+    points, normals = [], []
+    half = np.asarray(half)
+    for axis in range(3):
+        others = [a for a in range(3) if a != axis]
+        u = np.arange(-half[others[0]], half[others[0]] + 1e-9, spacing)
+        v = np.arange(-half[others[1]], half[others[1]] + 1e-9, spacing)
+        U, V = np.meshgrid(u, v, indexing="ij")
+        for sign in (-1, 1):
+            p = np.zeros((U.size, 3))
+            p[:, others[0]], p[:, others[1]], p[:, axis] = U.ravel(), V.ravel(), sign * half[axis]
+            n = np.zeros_like(p)
+            n[:, axis] = sign
+            points.append(p)
+            normals.append(n)
+    return Model(np.concatenate(points), np.concatenate(normals))
+
+
+def _seen(model: Model, pose: np.ndarray, noise: float, rng) -> Crop:
+    """The model's points that face the camera at ``pose``, in the camera frame, with depth noise."""
+    points = model.points @ pose[:3, :3].T + pose[:3, 3]
+    normals = model.normals @ pose[:3, :3].T
+    facing = np.einsum("ij,ij->i", normals, -points) > 0
+    return Crop(points[facing] + rng.normal(0, noise, (facing.sum(), 3)), normals[facing])
+
+
+def test_registration_recovers_a_known_pose_and_reports_its_information():
+    rng = np.random.default_rng(0)
+    model = _box_model()
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_euler("xyz", [30, 40, 10], degrees=True).as_matrix()
+    truth[:3, 3] = [0.02, -0.01, 0.6]
+    crop = _seen(model, truth, 0.0005, rng)
+    start = retract(truth, np.array([np.radians(3), -np.radians(2), 0.0, 0.004, -0.003, 0.002]))
+    result = register(crop, model, start, EstimatorConfig())
+    error = offset(truth, result.pose)
+    assert np.degrees(np.linalg.norm(error[:3])) < 0.1
+    assert np.linalg.norm(error[3:]) < 0.0003
+    assert result.fitness > 0.95 and result.rmse < 0.001
+    assert np.all(np.linalg.eigvalsh(result.information) > 0)
+
+
+def test_a_cylinder_leaves_its_spin_without_information():
+    angles = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    heights = np.linspace(-0.04, 0.04, 25)
+    A, H = np.meshgrid(angles, heights)
+    points = np.stack([0.04 * np.cos(A.ravel()), H.ravel(), 0.04 * np.sin(A.ravel())], axis=1)
+    normals = np.stack([np.cos(A.ravel()), np.zeros(A.size), np.sin(A.ravel())], axis=1)
+    model = Model(points, normals)
+    pose = np.eye(4)
+    pose[:3, 3] = [0, 0, 0.6]
+    result = register(_seen(model, pose, 0.0, np.random.default_rng(1)), model, pose, EstimatorConfig())
+    info = result.information
+    assert info[1, 1] < 1e-6 * info[0, 0]  # the spin about y: no information
+    assert info[4, 4] < 1e-6 * info[3, 3]  # and the slide along y neither
+
+
+def test_fuse_keeps_the_two_sides_of_a_thin_wall_apart():
+    x = np.linspace(0, 0.05, 20)
+    outer = np.stack([x, np.zeros_like(x), np.full_like(x, 0.001)], axis=1)
+    inner = np.stack([x, np.zeros_like(x), np.full_like(x, -0.001)], axis=1)
+    up, down = np.tile([0, 0, 1.0], (20, 1)), np.tile([0, 0, -1.0], (20, 1))
+    model = fuse([(outer, up), (inner, down)], 0.004)
+    assert np.any(model.normals[:, 2] > 0.99) and np.any(model.normals[:, 2] < -0.99)
+
+
+def test_anchors_are_the_boxes_a_person_placed_refined_or_accepted():
+    doc = Annotation(sequence="s", frames={
+        "1": FramePose(np.zeros(3), np.array([0, 0, 0, 1.0]), "manual"),
+        "2": FramePose(np.zeros(3), np.array([0, 0, 0, 1.0]), "tracked"),
+        "3": FramePose(np.zeros(3), np.array([0, 0, 0, 1.0]), "refined"),
+        "4": FramePose(np.zeros(3), np.array([0, 0, 0, 1.0]), "tracked", {"reviewed": "accepted"}),
+    })
+    assert anchor_frames(doc, ["1", "2", "3", "4", "5"]) == ["1", "3", "4"]
+
+
+def test_engine_switch(monkeypatch):
+    monkeypatch.delenv("REDWOOD_GT_ENGINE", raising=False)
+    assert engine_name("graph") == "graph" and tracking_engine("graph").track_sequence is track_sequence
+    monkeypatch.setenv("REDWOOD_GT_ENGINE", "graph")
+    assert engine_name() == "graph"
+    with pytest.raises(ValueError, match="unknown tracking engine"):
+        engine_name("nope")
+    with pytest.raises(ValueError, match="must be positive"):
+        EstimatorConfig(point_sigma=0).check()
+
+
+FRAMES = 24
+ANCHORS = ["0000002", "0000012", "0000021"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("estimator") / "box_0001"
+    mesh = trimesh.creation.box(extents=[0.10, 0.06, 0.08])
+    truth = render_sequence(root, mesh, frames=FRAMES, seed=4, hand=True)
+    rng = np.random.default_rng(7)
+    annotation = Annotation(sequence="box_0001", category="other", symmetry="none", extents=mesh.extents * np.array([1.05, 0.96, 1.03]))
+    for frame_id in ANCHORS:
+        off = retract(truth[frame_id], np.concatenate([rng.normal(0, np.radians(1.2), 3), rng.normal(0, 0.002, 3)]))
+        annotation.frames[frame_id] = FramePose.from_matrix(off, "manual")
+    return root, truth, annotation
+
+
+def test_tracks_a_rendered_box_held_by_a_hand(scene):
+    root, truth, annotation = scene
+    tracked = track_sequence(open_sequence(root), annotation)
+    ids = sorted(truth)
+    assert set(tracked.frames) == set(ids)
+    for frame_id in ANCHORS:  # a person's box stays where they put it
+        assert tracked.frames[frame_id].source == "manual"
+        np.testing.assert_allclose(tracked.frames[frame_id].position, annotation.frames[frame_id].position)
+    poses = np.stack([tracked.frames[f].matrix for f in ids])
+    true = np.stack([truth[f] for f in ids])
+    others = [k for k, f in enumerate(ids) if f not in ANCHORS]
+    assert np.median(_angles(poses, true)[others]) < 2.0
+    assert np.median(np.linalg.norm(poses[others, :3, 3] - true[others, :3, 3], axis=1)) < 0.004
+    figures = tracked.frames[ids[5]].extra
+    assert {"fitness", "sigma_deg", "sigma_mm", "pull_deg"} <= set(figures)
+
+
+def test_refine_leaves_a_box_off_the_object_where_it_was_and_says_why(scene):
+    root, truth, annotation = scene
+    doc = annotation.copy()
+    away = truth["0000007"].copy()
+    away[:3, 3] += [0.3, 0.0, 0.0]  # 30 cm beside the object
+    doc.frames["0000007"] = FramePose.from_matrix(away, "manual")
+    result = refine_frame(open_sequence(root), doc, "0000007")
+    np.testing.assert_allclose(result.position, away[:3, 3])
+    assert result.extra["flagged"] and "move the box onto the object" in result.extra["flag_reason"]
+    near = retract(truth["0000007"], np.array([0.03, -0.02, 0.01, 0.003, 0.002, -0.002]))
+    doc.frames["0000007"] = FramePose.from_matrix(near, "manual")
+    refined = refine_frame(open_sequence(root), doc, "0000007")
+    assert np.linalg.norm(refined.position - truth["0000007"][:3, 3]) < np.linalg.norm(near[:3, 3] - truth["0000007"][:3, 3])
+
+
+def test_annotate_track_with_the_graph_engine(scene, tmp_path):
+    root, _, annotation = scene
+    path = tmp_path / "doc.yaml"
+    save_annotation(annotation, path)
+    done = subprocess.run([sys.executable, "-m", "annotate.cli", str(root), "--annotation", str(path), "--track", "--engine", "graph"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert len(load_annotation(path).frames) == FRAMES
+    wrong = subprocess.run([sys.executable, "-m", "annotate.cli", str(root), "--engine", "graph"], capture_output=True, text=True, timeout=60)
+    assert wrong.returncode == 2 and "--engine applies to --track only" in wrong.stderr
