@@ -3,7 +3,8 @@
     evaluate --dataset DIR [--frames ROOT] --method SPEC [--method SPEC ...] --out OUT [--config FILE]
 
 writes ``OUT/results.json``, ``OUT/table.md``, ``OUT/table.csv``, ``OUT/precision_curves.png``,
-``OUT/curves.json`` and ``OUT/errors.csv`` (see :mod:`evaluate.report`); options on the command line override the config file
+``OUT/curves.json``, ``OUT/errors.csv``, and NOCS-style mAP's ``OUT/nocs_map.csv`` and
+``OUT/nocs_map_curves.png`` (see :mod:`evaluate.report`); options on the command line override the config file
 (:mod:`evaluate.config`).
 """
 
@@ -21,7 +22,8 @@ EXAMPLES = """examples:
   evaluate --dataset gt/ --frames sequences/ --method sgpa=cpas_toolbox.cpas_methods.sgpa:SGPA --out results/
   evaluate --config evaluate.yaml --out results/   (the YAML keys: see evaluate/config.py)
 
-outputs: OUT/results.json, OUT/table.md, OUT/table.csv, OUT/precision_curves.png, OUT/curves.json, OUT/errors.csv"""
+outputs: OUT/results.json, OUT/table.md, OUT/table.csv, OUT/precision_curves.png, OUT/curves.json, OUT/errors.csv,
+         OUT/nocs_map.csv, OUT/nocs_map_curves.png (NOCS-style mAP)"""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     file_values = read_config_file(args.config) if args.config else {}
     config = build_config(args, file_values)
 
-    from evaluate.report import write_outputs
+    from evaluate.report import nocs_labels, nocs_values, write_outputs
     from evaluate.runner import evaluate_dataset
 
     _check_out(config.out)  # before a long run, not after it
@@ -63,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     for result in evaluation.results:
         headline = ", ".join(f"{p.label}: {'–' if p.overall is None else f'{100 * p.overall:.1f}%'}" for p in result.precision)
         print(f"{result.name}: {headline} ({len(result.failed)} of {result.samples} failed)")
+        if result.nocs is not None:
+            mean, _ = nocs_values(result.nocs)
+            print(f"{result.name} NOCS mAP: " + ", ".join(f"{label} {'–' if v != v else f'{100 * v:.1f}%'}" for label, v in zip(nocs_labels(result.nocs), mean)))
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
     return 0
 

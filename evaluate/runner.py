@@ -1,9 +1,15 @@
-"""Running an evaluation: predictions of every method for every sample, their errors, precision.
+"""Running an evaluation: predictions of every method for every sample, their errors, precision,
+and NOCS-style mAP.
 
 Counting rules: every sample counts for every threshold tuple; a failed sample (no prediction, or
 a malformed one) is incorrect at every threshold. A tuple with an F-score threshold counts only
 the samples that have a true mesh (the others cannot be scored and are reported); a prediction
 without a reconstruction fails such a tuple.
+
+NOCS-style mAP (:mod:`evaluate.metrics.nocs_map`): every sample is one ground-truth box of its image
+(sequence and frame); each method's prediction for a sample is one detection in that image, of the
+category it names (the sample's by default) and with its score (1.0 by default); a failed sample has
+no detection, so its box is missed.
 """
 
 from __future__ import annotations
@@ -87,7 +93,7 @@ class ShapeIndexCache:
 
 def score_method(dataset: Dataset, predictions: list, shapes: list, fscore_threshold: float):
     """SampleErrors (evaluate.metrics) of one method: ``predictions`` holds per sample a
-    (position, orientation, extents, points) tuple or None for a failed sample."""
+    (position, orientation, extents, points, score, category) tuple or None for a failed sample."""
     from evaluate.metrics import compute_sample_errors
 
     samples = dataset.samples
@@ -102,6 +108,57 @@ def score_method(dataset: Dataset, predictions: list, shapes: list, fscore_thres
         fscore_threshold=fscore_threshold,
         compute_chamfer=True,
     )
+
+
+def nocs_ground_truth(dataset: Dataset) -> dict:
+    """The dataset as NOCS ground truth: image labels (sequence/frame), categories, poses (N, 4, 4),
+    extents (N, 3) m and NOCS's symmetric flags (the symmetry label, and mugs whose handle is not visible)."""
+    from evaluate.metrics.nocs_map import nocs_symmetric
+
+    samples = dataset.samples
+    categories = np.array([s.category for s in samples], dtype=object)
+    return {
+        "image": np.array([f"{s.sequence}/{s.frame}" for s in samples], dtype=object),
+        "category": categories,
+        "pose": np.array([s.pose for s in samples]).reshape(-1, 4, 4),
+        "extents": np.array([s.extents for s in samples]).reshape(-1, 3),
+        "symmetric": nocs_symmetric(categories, [s.symmetry for s in samples], [s.handle_visible for s in samples]),
+        "label_symmetric": np.array([s.symmetry == "y" for s in samples], dtype=bool),
+    }
+
+
+def nocs_map_of_method(truth: dict, predictions: list, errors):
+    """NOCS-style mAP of one method: one detection per sample with a prediction (see the module docstring).
+
+    The pair of a detection and its own sample reuses the IoU and pose errors already in ``errors`` when
+    the two agree on the symmetry (always, unless a mug's handle is hidden): the symmetric IoU is the
+    costly part, and it is the same computation.
+    """
+    from evaluate.geometry import quat_to_matrix
+    from evaluate.metrics.nocs_map import Pairs, candidate_pairs, nocs_map_from_pairs, pair_errors
+
+    owner = np.array([i for i, p in enumerate(predictions) if p is not None and not errors.failed[i]], dtype=np.int64)
+    position = np.array([predictions[i][0] for i in owner]).reshape(-1, 3)
+    orientation = np.array([predictions[i][1] for i in owner]).reshape(-1, 4)
+    pose = np.tile(np.eye(4), (len(owner), 1, 1))
+    if len(owner):
+        pose[:, :3, :3], pose[:, :3, 3] = quat_to_matrix(orientation / np.linalg.norm(orientation, axis=1, keepdims=True)), position
+    extents = np.array([predictions[i][2] for i in owner]).reshape(-1, 3)
+    score = np.array([predictions[i][4] for i in owner], dtype=np.float64)
+    category = np.array([predictions[i][5] or truth["category"][i] for i in owner], dtype=object)
+    image = truth["image"][owner]
+    pairs = candidate_pairs(truth["image"], truth["category"], image, category)
+    own = owner[pairs.det] == pairs.gt
+    known = own & (truth["symmetric"][pairs.gt] == truth["label_symmetric"][pairs.gt])
+    known &= np.isfinite(errors.iou[pairs.gt]) & np.isfinite(errors.rotation_error[pairs.gt])
+    iou, degrees, metres = np.zeros(len(pairs.det)), np.zeros(len(pairs.det)), np.zeros(len(pairs.det))
+    iou[known], degrees[known], metres[known] = (v[pairs.gt[known]] for v in (errors.iou, errors.rotation_error, errors.position_error))
+    rest = ~known
+    if rest.any():
+        computed = pair_errors(Pairs(pairs.det[rest], pairs.gt[rest]), truth["pose"], truth["extents"], truth["symmetric"], pose, extents)
+        iou[rest], degrees[rest], metres[rest] = computed.iou, computed.degrees, computed.position
+    pairs = Pairs(pairs.det, pairs.gt, iou, degrees, metres)
+    return nocs_map_from_pairs(pairs, truth["image"], truth["category"], image, category, score)
 
 
 def precision_rows(errors, thresholds: list[dict], categories: np.ndarray, has_mesh: np.ndarray, names: list[str]) -> list[ThresholdPrecision]:
@@ -155,7 +212,7 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
             try:
                 p = method.predict(sample, inputs)
                 points = reconstruction_points(p.reconstruction, config.surface_samples, config.seed) if sample.mesh_path is not None else None
-                predicted[method.name][i] = (p.position, p.orientation, p.extents, points)
+                predicted[method.name][i] = (p.position, p.orientation, p.extents, points, p.score, p.category)
             except PredictionFailure as failure:
                 reasons[method.name][i] = " ".join(str(failure).split())
             except (Exception, SystemExit) as error:  # a method's own bug or exit is that sample's failure, not the run's end
@@ -170,9 +227,13 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
     if not has_mesh.all():
         missing = sorted({s.sequence if s.instance is None else s.label for s in dataset if s.mesh_path is None})
         notes.append(f"{int((~has_mesh).sum())} of {n} samples have no true mesh ({', '.join(missing)}): F-score thresholds count only the other {int(has_mesh.sum())}; their pose and IoU are evaluated.")
+    truth = nocs_ground_truth(dataset)
     results = []
     for method in methods:
         errors = score_method(dataset, predicted[method.name], shapes, config.fscore_threshold)
+        nocs = nocs_map_of_method(truth, predicted[method.name], errors)
+        if nocs.ignored:
+            notes.append(f"{method.name}: {nocs.ignored} detections name a category the dataset lacks; NOCS-style mAP ignores them.")
         failed = []
         for i, sample in enumerate(dataset):
             if reasons[method.name][i] is None and errors.failed[i]:
@@ -202,6 +263,7 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
                 precision=precision_rows(errors, config.thresholds, categories, has_mesh, names),
                 curves=curves(errors, config.curves, has_mesh),
                 rows=rows,
+                nocs=nocs,
             )
         )
     return Evaluation(dataset, results, notes)

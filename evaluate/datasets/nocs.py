@@ -78,6 +78,18 @@ def load_gts(path: Path) -> dict:
     return data
 
 
+def handle_visibility(path: Path, gts: dict, n: int) -> list[bool] | None:
+    """``gt_handle_visibility`` of a results pickle (one 0/1 per ``gt_RTs`` entry; NOCS's evaluation reads
+    it for mugs), or None when the pickle has none."""
+    value = gts.get("gt_handle_visibility")
+    if value is None:
+        return None
+    flags = np.asarray(value).reshape(-1)
+    if len(flags) != n or flags.dtype.kind not in "biuf" or not np.isin(flags, (0, 1)).all():
+        raise InputError(path, f"gt_handle_visibility must hold one 0 or 1 per gt_RTs entry ({n}), got {np.asarray(value).tolist()!r}"[:300])
+    return [bool(f) for f in flags]
+
+
 def read_meta(path: Path) -> dict[int, tuple[int, str]]:
     """meta.txt: {instance id: (class id, model name)}."""
     rows = {}
@@ -135,7 +147,9 @@ class NocsDataset(Dataset):
             return []
         mask_path = color.with_name(f"{frame}_mask.png")
         meta = read_meta(color.with_name(f"{frame}_meta.txt"))
-        gt_RTs = np.asarray(load_gts(gts_path)["gt_RTs"])
+        gts = load_gts(gts_path)
+        gt_RTs = np.asarray(gts["gt_RTs"])
+        handles = handle_visibility(gts_path, gts, len(gt_RTs))
         ids = np.unique(read_instance_ids(mask_path, NOCS_CAMERA))
         ids = [int(i) for i in ids if i != BACKGROUND]
         samples, gt_index = [], 0
@@ -150,6 +164,7 @@ class NocsDataset(Dataset):
             if gt_index >= len(gt_RTs):
                 raise InputError(gts_path, f"gt_RTs has {len(gt_RTs)} entries but the mask has more annotated instances")
             R, _, t = decompose_scaled_rotation(gts_path, gt_RTs[gt_index])
+            handle_visible = None if handles is None else handles[gt_index]
             gt_index += 1
             model_dir = root / "obj_models" / split
             extents = read_extents(model_dir / f"{model}.txt")
@@ -171,6 +186,7 @@ class NocsDataset(Dataset):
                     depth_path=color.with_name(f"{frame}_depth.png"),
                     mesh_path=mesh_path if mesh_path.is_file() else None,
                     mask_path=mask_path,
+                    handle_visible=handle_visible,
                 )
             )
         return samples

@@ -35,6 +35,7 @@ class Sample:
     mesh_path: Path | None = None  # None: no mesh; shape metrics are skipped for this sample
     instance: str | None = None  # instance id where a frame holds several objects (NOCS)
     mask_path: Path | None = None  # the dataset's own mask image (NOCS instance ids; masks reconstruct-sequence wrote)
+    handle_visible: bool | None = None  # mugs: whether the handle is visible in this frame (NOCS gt_handle_visibility); None = unknown
 
     def __post_init__(self) -> None:
         self.position = np.asarray(self.position, dtype=np.float64).reshape(3)

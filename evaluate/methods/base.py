@@ -25,6 +25,8 @@ class Prediction:
     orientation: np.ndarray  # (4,) object->camera quaternion x, y, z, w
     extents: np.ndarray  # (3,) full side lengths along object x, y, z, m
     reconstruction: Any = None  # optional: (N, 3) points or a trimesh.Trimesh, object frame, m
+    score: float = 1.0  # detection confidence, higher = surer (ranks detections for NOCS-style mAP)
+    category: str | None = None  # detected category; None = the sample's category
 
     def __post_init__(self) -> None:
         self.position = np.asarray(self.position, dtype=np.float64).reshape(3)

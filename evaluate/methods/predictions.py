@@ -5,7 +5,9 @@ as an integer, also matches),
 "instance" (only for datasets with several objects per frame), "position" [3] (m, camera
 frame), "orientation" [4] (x, y, z, w, object -> camera), "extents" [3] (m, full side lengths,
 ShapeNet axes), "reconstruction" (optional: a mesh or point file, object frame, metres; relative
-paths are relative to the predictions file)}``.
+paths are relative to the predictions file), "score" (optional: the detection's confidence, a finite
+number, default 1.0; ranks detections for NOCS-style mAP), "category" (optional: the detected category,
+default the sample's)}``.
 
 A sample without a line, or whose line is malformed (not finite, wrong shape, non-unit quaternion,
 unreadable reconstruction, two lines for one sample) counts as incorrect, with the reason.
@@ -98,11 +100,17 @@ class PredictionsFile(SampleMethod):
             if not all(math.isfinite(v) for v in value):
                 raise PredictionFailure(f"{at}: {field} is not finite")
             values[field] = np.asarray(value, dtype=np.float64)
+        score = entry.get("score", 1.0)
+        if isinstance(score, bool) or not isinstance(score, (int, float)) or not math.isfinite(score):
+            raise PredictionFailure(f"{at}: score must be a finite number")
+        category = entry.get("category")
+        if category is not None and (not isinstance(category, str) or not category.strip()):
+            raise PredictionFailure(f"{at}: category must be a non-empty string")
         reconstruction = None
         if entry.get("reconstruction") is not None:
             reconstruction = self._reconstruction(at, entry["reconstruction"])
         try:
-            return check_prediction(Prediction(values["position"], values["orientation"], values["extents"], reconstruction))
+            return check_prediction(Prediction(values["position"], values["orientation"], values["extents"], reconstruction, float(score), category))
         except PredictionFailure as failure:
             raise PredictionFailure(f"{at}: {failure}") from None
 

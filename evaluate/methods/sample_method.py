@@ -89,7 +89,8 @@ class FrameMethod(SampleMethod):
 
 def check_prediction(prediction: Any) -> Prediction:
     """Validate a method's answer: finite (3,) position, unit (4,) quaternion, positive finite (3,) extents,
-    and a reconstruction that is None, finite (N, 3) points (N > 0) or a mesh with triangles.
+    a reconstruction that is None, finite (N, 3) points (N > 0) or a mesh with triangles, a finite score
+    and a category that is None or a name.
     Returns it with the quaternion normalised; raises :class:`PredictionFailure` naming the problem."""
     if not isinstance(prediction, Prediction):
         raise PredictionFailure(f"method returned {type(prediction).__name__}, not a Prediction")
@@ -118,4 +119,10 @@ def check_prediction(prediction: Any) -> Prediction:
             reconstruction = points
         if not np.isfinite(points).all():
             raise PredictionFailure("reconstruction has non-finite coordinates")
-    return Prediction(prediction.position, prediction.orientation / norm, prediction.extents, reconstruction)
+    score = prediction.score
+    if isinstance(score, bool) or not isinstance(score, (int, float, np.integer, np.floating)) or not np.isfinite(score):
+        raise PredictionFailure(f"score must be a finite number, got {score!r}")
+    category = prediction.category
+    if category is not None and (not isinstance(category, str) or not category.strip()):
+        raise PredictionFailure(f"category must be a non-empty string, got {category!r}")
+    return Prediction(prediction.position, prediction.orientation / norm, prediction.extents, reconstruction, float(score), category)

@@ -7,7 +7,8 @@ symmetric objects (bottle, bowl, can) are symmetric about their object y axis.
 Modules: :mod:`.pose_errors` (translation, rotation), :mod:`.box_iou` (exact oriented IoU, symmetric
 IoU, NOCS axis-aligned IoU), :mod:`.shape_metrics` (chamfer, F-score), :mod:`.sampling` (mesh
 sampling, :class:`ShapeIndex`), :mod:`.precision` (thresholds, precision tables and curves),
-:mod:`.sample_errors` (all errors of a sample at once).  Typical use: build one ShapeIndex per object,
+:mod:`.sample_errors` (all errors of a sample at once), :mod:`.nocs_map` (NOCS-style mAP of scored
+detections, with the exact IoU).  Typical use: build one ShapeIndex per object,
 call :func:`compute_sample_errors` once for all samples of a method, then :func:`precision_table` and
 :func:`precision_curves` (pure comparisons; no metric is recomputed per threshold).
 
@@ -35,6 +36,7 @@ from evaluate.metrics.box_iou import (
     symmetric_box_iou,
     symmetric_box_iou_batch,
 )
+from evaluate.metrics.nocs_map import NocsMapConfig, NocsMapResult, average_precision, nocs_map, nocs_symmetric
 from evaluate.metrics.pose_errors import rotation_error, translation_error
 from evaluate.metrics.precision import (
     DEFAULT_FSCORE_DISTANCE,
@@ -56,8 +58,8 @@ from evaluate.metrics.shape_metrics import FScore, chamfer_distance, fscore, squ
 
 __all__ = [
     "DEFAULT_FSCORE_DISTANCE", "DEFAULT_SAMPLES", "DEFAULT_THRESHOLDS", "DEGREE_CURVE", "FSCORE_CURVE", "FScore",
-    "IOU_CURVE", "POSITION_CURVE", "QUATERNION_TOLERANCE", "SampleErrors", "ShapeIndex", "Threshold",
-    "axis_aligned_iou", "box_iou", "box_iou_batch", "box_volume", "chamfer_distance", "compute_sample_errors",
-    "correct", "fscore", "precision", "precision_curves", "precision_table", "rotation_error", "sample_surface",
+    "IOU_CURVE", "NocsMapConfig", "NocsMapResult", "POSITION_CURVE", "QUATERNION_TOLERANCE", "SampleErrors", "ShapeIndex", "Threshold",
+    "average_precision", "axis_aligned_iou", "box_iou", "box_iou_batch", "box_volume", "chamfer_distance", "compute_sample_errors",
+    "correct", "fscore", "nocs_map", "nocs_symmetric", "precision", "precision_curves", "precision_table", "rotation_error", "sample_surface",
     "squared_chamfer_distance", "symmetric_box_iou", "symmetric_box_iou_batch", "translation_error",
 ]
