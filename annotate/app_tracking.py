@@ -23,10 +23,13 @@ REFINE_MODEL_FRAMES = 6
 
 
 def tracking_engine():
-    """The tracking module, or None when it is not installed."""
+    """The tracking engine's module (annotate.engines: $REDWOOD_GT_ENGINE or the default), or None when it is not
+    installed."""
+    from .engines import tracking_engine as chosen
+
     try:
-        from . import tracking
-    except ImportError:
+        tracking = chosen()
+    except (ImportError, ValueError):
         return None
     if not (hasattr(tracking, "refine_frame") and hasattr(tracking, "track_sequence")):
         return None

@@ -52,8 +52,11 @@ def motion_drift(poses: dict[str, np.ndarray], truth_poses: dict[str, np.ndarray
     return np.atleast_1d(degrees), mm
 
 
-def run_object(root: Path, name: str, workers: int | None) -> list[dict]:
-    from annotate.tracking import TrackingConfig, track_sequence
+def run_object(root: Path, name: str, workers: int | None, engine: str | None = None) -> list[dict]:
+    from annotate.engines import engine_name, tracking_engine
+
+    engine = engine_name(engine)
+    track_sequence = tracking_engine(engine).track_sequence
 
     sequence = open_sequence(root)
     truth = load_ycbv_truth(root, name)
@@ -63,14 +66,18 @@ def run_object(root: Path, name: str, workers: int | None) -> list[dict]:
     rows = []
     for k, (placement, degrees, metres) in enumerate(PLACEMENTS):
         placed = truth_annotation(truth, [ids[0]], degrees, metres, 0.0, seed=17 + k)
-        config = TrackingConfig() if workers is None else TrackingConfig(workers=workers)
+        config = None
+        if engine == "chains" and workers is not None:
+            from annotate.tracking import TrackingConfig
+
+            config = TrackingConfig(workers=workers)
         start = time.perf_counter()
         tracked = track_sequence(sequence, placed, config=config)
         seconds = time.perf_counter() - start
         poses = {f: tracked.frames[f].matrix for f in ids}
         deg, mm = motion_drift(poses, truth.poses, ids, truth.symmetry)
         rows.append({
-            "video": root.name, "object": name, "category": truth.category, "symmetry": truth.symmetry, "placement": placement,
+            "video": root.name, "engine": engine, "object": name, "category": truth.category, "symmetry": truth.symmetry, "placement": placement,
             "frames": len(ids), "drift_max_deg": float(deg.max()), "drift_max_mm": float(mm.max()),
             "drift_last_deg": float(deg[-1]), "drift_last_mm": float(mm[-1]),
             "copy_max_deg": float(copy_deg.max()), "copy_max_mm": float(copy_mm.max()),
@@ -97,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shared", default=str(SHARED), help="../shared/data")
     parser.add_argument("--out", default=str(REPO / "build" / "real"))
-    parser.add_argument("--workers", type=int)
+    parser.add_argument("--workers", type=int, help="the chains engine's worker processes")
+    parser.add_argument("--engine", choices=("graph", "chains"), help="tracking engine (default: annotate.engines' default)")
     args = parser.parse_args(argv)
     videos = sorted(p for p in (Path(args.shared) / "ycbv_real").glob("[0-9]*") if p.is_dir())
     if not videos:
@@ -105,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for root in videos:
         for name in ycbv_objects(root):  # a few objects per video
-            rows.extend(run_object(root, name, args.workers))
+            rows.extend(run_object(root, name, args.workers, args.engine))
             print(f"{root.name} {name}: " + ", ".join(f"{r['placement']} {r['drift_max_deg']:.2f} deg {r['drift_max_mm']:.1f} mm" for r in rows[-2:]), flush=True)
     met = sum(r["meets_goal"] for r in rows)
     text = (f"# Tracking on real frames (YCB-Video 0001, 0002)\n\nEach object tracked from one box in the first frame; drift against the true "

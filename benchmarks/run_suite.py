@@ -27,6 +27,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 sys.path.insert(0, str(REPO))
 
 from sequences.errors import run_cli  # noqa: E402
+from annotate.engines import ENGINES  # noqa: E402
 from sequences.sample import cache_dir  # noqa: E402
 from suite.run import category_table, run_sequence, sequence_table  # noqa: E402
 from suite.spec import SHARED, SPLITS, SUITE, Setting, build, load_suite  # noqa: E402
@@ -50,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", default=str(cache_dir() / "suite"), help="cache of generated sequences")
     parser.add_argument("--out", help="where to write results.json and README.md (default build/suite/<split>[-quick])")
     parser.add_argument("--shared", default=str(SHARED), help="../shared/data (the real meshes and REDWOOD75's orientations)")
-    parser.add_argument("--workers", type=int, help="tracking worker processes (default: the tracker's)")
+    parser.add_argument("--workers", type=int, help="tracking worker processes (default: the tracker's; the chains engine)")
+    parser.add_argument("--engine", choices=ENGINES, help="tracking engine (default: annotate.engines' default)")
     parser.add_argument("--tables", metavar="RESULTS", help="print the tables of an earlier run's results.json (runs nothing)")
     args = parser.parse_args(argv)
     if args.tables:
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         root = build(entry, frames, Path(args.data), Path(args.shared))
         built = time.perf_counter() - t0
-        new = run_sequence(root, settings, entry.name, entry.seed, args.workers)
+        new = run_sequence(root, settings, entry.name, entry.seed, args.workers, args.engine)
         for row in new:
             row.update(split=entry.split, shape=entry.shape, coverage=entry.coverage, texture=entry.texture, sensor=entry.sensor)
         rows.extend(new)

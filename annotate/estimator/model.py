@@ -59,10 +59,11 @@ def seen_through(model: Model, crops: FrameCrops, poses: dict[str, np.ndarray], 
 
 def fused_model(crops: FrameCrops, poses: dict[str, np.ndarray], parts: dict[str, tuple[np.ndarray, np.ndarray]], tolerance: float, max_free_share: float) -> Model:
     """The model of ``parts`` (frame -> camera-frame points and normals) at ``poses``, without the voxels the
-    frames see through in more than ``max_free_share`` of the frames that see them."""
+    frames of ``poses`` (all of them, not only the parts') see through in more than ``max_free_share`` of the frames
+    that see them."""
     moved = []
     for frame_id, (points, normals) in parts.items():
-        pose = poses[frame_id]
+        pose = poses[frame_id]  # noqa: the parts' own poses; the free-space test reads every frame of ``poses``
         moved.append(((points - pose[:3, 3]) @ pose[:3, :3], normals @ pose[:3, :3]))
     model = fuse(moved, crops.voxel)
     free, seen = seen_through(model, crops, poses, tolerance)

@@ -9,7 +9,8 @@
    correction that best fits the anchors (the object frame is theirs; the data fix only poses relative to it);
 4. rounds: the model of all frames is fused at the solved poses, without what other frames see through (a hand);
    every frame is registered to it, and the graph solved again with those registrations; until no frame moves
-   more than ``settled_*`` or ``rounds`` are done;
+   more than ``settled_*`` or ``rounds`` are done; for symmetry y, the object's y then turned onto the model's axis of
+   revolution where the model determines one;
 5. flags from the estimate: the registration's fitness, the graph's marginal standard deviation, and how far the
    graph pulled the frame from its registration, each with its reason in words.
 """
@@ -25,14 +26,30 @@ from scipy.spatial.transform import Rotation
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
+from annotate.tracking.symmetry import fit_symmetry_axis, snap_upright
+
 from .config import EstimatorConfig
 from .graph import Factor, Solution, sigmas, solve
 from .model import fuse, fused_model
 from .observations import Crop, FrameCrops
-from .registration import Registration, register
+from .registration import Model, Registration, register, retract
 from .review import frame_figures
+from .timing import colour_offsets, shifted, velocities
 
 Progress = Callable[[int, int], None]
+
+#: a frame is registered, and cropped again at the result, at most this many times ...
+CROP_PASSES = 3
+#: ... until the registration moves it less than this (deg, m): the crop then holds the same points
+RECROP_DEG, RECROP_M = 0.5, 0.001
+#: a round registers the frames of each of this many contiguous blocks to the model of the others
+ROUND_BLOCKS = 4
+#: for symmetry y, the model's axis replaces the anchors' y when it is this well determined (the ratio of the direction
+#: fit's two smallest singular values, annotate.tracking.symmetry.fit_symmetry_axis: bottles and cans 0.06-0.08, a
+#: shallow bowl 0.2) ...
+MAX_AXIS_CONDITIONING = 0.15
+#: ... and within this many degrees of the anchors' y (further: the fit found another axis, not the labelled one)
+MAX_UPRIGHT_DEG = 10.0
 
 
 def anchor_frames(annotation: Annotation, ids: list[str]) -> list[str]:
@@ -64,11 +81,33 @@ class _Setup:
         self.crops = FrameCrops(sequence, config.stride, config.voxel_for(annotation.extents))
         self.half = np.asarray(annotation.extents, dtype=np.float64) / 2 * (1 + config.crop_slack) + config.crop_margin
         self.symmetric = annotation.symmetry == "y"
+        self.offsets = colour_offsets(sequence, ids)
         #: a registration's pull towards the pose it starts from: the motion sigma (the start is a prediction)
         self.motion_prior = np.diag(1.0 / sigmas(config.motion_sigma_deg, config.motion_sigma_m) ** 2)
 
+    def at_depth(self, anchors: dict[int, np.ndarray], poses: np.ndarray) -> dict[int, np.ndarray]:
+        """The anchors' boxes (placed on colour frames) moved to their depth frames' times along ``poses``' motion."""
+        if not np.any(self.offsets):
+            return anchors
+        xi = velocities(poses)
+        return {k: retract(placed, -xi[k] * self.offsets[k]) for k, placed in anchors.items()}
+
     def crop(self, frame_id: str, pose: np.ndarray, thin: bool = True) -> Crop:
         return self.crops.crop(frame_id, pose, self.half, self.config.max_points if thin else 0, seed=self.index[frame_id])
+
+    def register(self, frame_id: str, start: np.ndarray, model: Model) -> tuple[Registration, Crop]:
+        """The frame registered to ``model`` from ``start``, its crop following the box: cropped again where the
+        registration moved it (at most CROP_PASSES times): a crop at a pose degrees off holds what lies beside the
+        object there (a hand, the table) and misses part of it, and those points hold the pose back."""
+        pose = start
+        for _ in range(CROP_PASSES):
+            crop = self.crop(frame_id, pose)
+            result = register(crop, model, pose, self.config, self.motion_prior)
+            degrees, metres = _moved(pose[None], result.pose[None])
+            pose = result.pose
+            if degrees < RECROP_DEG and metres < RECROP_M:
+                break
+        return result, crop
 
 
 def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anchor_parts: list, done: Callable[[], None]) -> tuple[dict[str, np.ndarray], list[Factor]]:
@@ -86,8 +125,7 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
     previous, before = placed, None
     for frame_id in order:
         predicted = previous if before is None else (previous @ np.linalg.inv(before)) @ previous
-        crop = setup.crop(frame_id, predicted)
-        result = register(crop, model, predicted, config, setup.motion_prior)
+        result, crop = setup.register(frame_id, predicted, model)
         if result.ok and result.fitness >= config.min_fitness / 2:
             pose = result.pose
             steps.append(Factor(setup.index[last_id], setup.index[frame_id], np.linalg.inv(last_pose) @ pose, result.information))
@@ -124,10 +162,11 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
     return initial, steps
 
 
-def common_correction(poses: np.ndarray, anchors: dict[int, np.ndarray]) -> np.ndarray:
-    """``poses`` (n, 4, 4) moved by the one object-frame transform G that best fits the anchors (T_a G ~ P_a): the
-    mean rotation and the mean translation of their corrections T_a^-1 P_a."""
-    corrections = np.stack([np.linalg.inv(poses[k]) @ placed for k, placed in anchors.items()])
+def common_correction(poses: np.ndarray, anchors: dict[int, np.ndarray], offsets: np.ndarray | None = None) -> np.ndarray:
+    """``poses`` (n, 4, 4, depth time) moved by the one object-frame transform G that best fits the anchors (colour
+    time) at colour time (T_a G ~ P_a): the mean rotation and the mean translation of their corrections T_a^-1 P_a."""
+    at_colour = poses if offsets is None else shifted(poses, offsets)
+    corrections = np.stack([np.linalg.inv(at_colour[k]) @ placed for k, placed in anchors.items()])
     G = np.eye(4)
     G[:3, :3] = Rotation.from_matrix(corrections[:, :3, :3]).mean().as_matrix()
     G[:3, 3] = corrections[:, :3, 3].mean(axis=0)
@@ -139,6 +178,43 @@ def _moved(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     relative = np.linalg.inv(a) @ b
     degrees = np.degrees(np.linalg.norm(Rotation.from_matrix(relative[:, :3, :3]).as_rotvec(), axis=1))
     return float(degrees.max()), float(np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1).max())
+
+
+def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None]) -> dict[str, Registration]:
+    """Every frame registered to the model fused from the frames of the other ROUND_BLOCKS - 1 blocks of the sequence
+    (contiguous), at ``poses``: a frame's own points and its neighbours', posed alike, would confirm its pose whatever
+    it is; the other blocks saw the object at poses the chains reached independently."""
+    config, ids = setup.config, setup.ids
+    at = {f: poses[setup.index[f]] for f in ids}
+    parts = {f: setup.crop(f, at[f], thin=False) for f in ids}
+    blocks = np.array_split(np.arange(len(ids)), min(ROUND_BLOCKS, len(ids)))
+    registrations = {}
+    for block in blocks:
+        inside = {ids[k] for k in block}
+        others = {f: (c.points, c.normals) for f, c in parts.items() if f not in inside} or {f: (c.points, c.normals) for f, c in parts.items()}
+        model = fused_model(setup.crops, at, others, config.free_space_tolerance, config.max_free_share)
+        for k in block:
+            f = ids[k]
+            registrations[f] = setup.register(f, at[f], model)[0]
+            done()
+    return registrations
+
+
+def _upright(setup: _Setup, poses: np.ndarray) -> np.ndarray:
+    """For symmetry y: ``poses`` with the object's y turned onto the symmetry axis of the model of all frames, and its
+    centre moved across onto it, where the model's normal lines determine that axis (a shallow bowl's, nearly a
+    sphere's, do not) and it lies within MAX_UPRIGHT_DEG of y. The anchors set the object frame; for a body of
+    revolution its shape sets the axis more exactly than the boxes' average (each off by a few degrees)."""
+    at = {f: poses[setup.index[f]] for f in setup.ids}
+    parts = {f: setup.crop(f, at[f], thin=False) for f in setup.ids}
+    config = setup.config
+    model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
+    if len(model) < 50:
+        return poses
+    axis, point, _, conditioning = fit_symmetry_axis(model.points, model.normals)
+    if conditioning > MAX_AXIS_CONDITIONING or np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > MAX_UPRIGHT_DEG:
+        return poses
+    return np.stack([snap_upright(pose, axis, point) for pose in poses])
 
 
 def _solve(setup: _Setup, initial: np.ndarray, registrations: list[Factor], steps: list[Factor], anchors: dict[int, np.ndarray]) -> Solution:
@@ -178,28 +254,25 @@ def track_sequence(
 
     # 2-3: the chains, one graph of their steps, the anchors' frame
     initial, steps = _front_end(setup, anchors, placed, done)
-    poses = common_correction(_solve(setup, initial, [], steps, anchored).poses, anchored)
+    poses = common_correction(_solve(setup, initial, [], steps, setup.at_depth(anchored, initial)).poses, anchored, setup.offsets)
     # 4: rounds against the model of all frames
     registrations: dict[str, Registration] = {}
     solution = None
     for _ in range(config.rounds):
-        parts = {f: setup.crop(f, poses[setup.index[f]], thin=False) for f in ids}
-        at = {f: poses[setup.index[f]] for f in ids}
-        model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
-        registrations = {}
-        for f in ids:
-            registrations[f] = register(setup.crop(f, at[f]), model, at[f], config, setup.motion_prior)
-            done()
+        registrations = _round(setup, poses, done)
         factors = [Factor(setup.index[f], None, r.pose, r.information) for f, r in registrations.items() if r.ok]
-        solution = _solve(setup, poses, factors, steps, anchored)
-        new = common_correction(solution.poses, anchored)
+        solution = _solve(setup, poses, factors, steps, setup.at_depth(anchored, poses))
+        new = common_correction(solution.poses, anchored, setup.offsets)
         degrees, metres = _moved(poses, new)
         poses = new
         if degrees < config.settled_deg and metres < config.settled_m:
             break
+    if setup.symmetric:
+        poses = _upright(setup, poses)
     if progress is not None:
         progress(total, total)
-    # 5: the document
+    # 5: the document, at the colour frames' times
+    poses = shifted(poses, setup.offsets)
     out = annotation.copy()
     for k, frame_id in enumerate(ids):
         registration = registrations.get(frame_id)

@@ -29,6 +29,8 @@ from .observations import Crop
 FACING_CANDIDATES = 2
 #: an iteration moving the pose less than this (rad, m) ends the stage: 0.01 deg and 0.02 mm
 CONVERGED = (1.7e-4, 2e-5)
+#: weight of the point-to-point term beside the point-to-plane one (its residuals count this much, squared)
+POINT_WEIGHT = 0.3
 #: the Cauchy weight's scale, as a share of the stage's correspondence distance
 CAUCHY_SHARE = 0.25
 
@@ -86,8 +88,22 @@ def _pairs(model: Model, q: np.ndarray, n: np.ndarray, distance: float, facing_c
     return np.where(ok, chosen, -1), dist[np.arange(len(q)), first]
 
 
-def _system(model: Model, q: np.ndarray, n: np.ndarray, distance: float, facing_cos: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Jacobians (K, 6), residuals (K,) and Cauchy weights (K,) of the pairs, and the paired mask (N,)."""
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[v]x (K, 3, 3) of vectors (K, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    return out - np.transpose(out, (0, 2, 1))
+
+
+def _system(model: Model, q: np.ndarray, n: np.ndarray, distance: float, facing_cos: float, with_points: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The normal equations (H (6, 6), g (6,)) of the pairs, their point-to-plane residuals (K,) and Cauchy weights
+    (K,), and the paired mask (N,).
+
+    Beside the point-to-plane term, a point-to-point term of weight POINT_WEIGHT^2: on a surface that turns into
+    itself (a shallow bowl is nearly a sphere) the planes leave the pose free to slide, and a model's rim then
+    holds it back; the points' tangential offsets measure that slide. It helps the pose converge, but is no evidence
+    of it (a cylinder's samples would "fix" its spin): ``with_points=False`` gives the planes' equations alone, which
+    the information is made of."""
     index, _ = _pairs(model, q, n, distance, facing_cos)
     paired = index >= 0
     qp, m, nm = q[paired], model.points[index[paired]], model.normals[index[paired]]
@@ -95,7 +111,14 @@ def _system(model: Model, q: np.ndarray, n: np.ndarray, distance: float, facing_
     jacobian = -np.hstack([np.cross(qp, nm), nm])
     scale = CAUCHY_SHARE * distance
     weight = 1.0 / (1.0 + (residual / scale) ** 2)
-    return jacobian, residual, weight, paired
+    H = (jacobian * weight[:, None]).T @ jacobian
+    g = (jacobian * weight[:, None]).T @ residual
+    if POINT_WEIGHT > 0 and len(qp) and with_points:
+        point_jacobian = np.concatenate([_skew(qp), np.broadcast_to(-np.eye(3), (len(qp), 3, 3))], axis=2)  # d(q - m)/d(w, v)
+        w = POINT_WEIGHT**2 * weight
+        H = H + np.einsum("k,kia,kib->ab", w, point_jacobian, point_jacobian)
+        g = g + np.einsum("k,kia,ki->a", w, point_jacobian, qp - m)
+    return H, g, residual, weight, paired
 
 
 def offset(init: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -123,12 +146,12 @@ def register(crop: Crop, model: Model, init: np.ndarray, config: EstimatorConfig
         for _ in range(config.icp_iterations):
             q = (crop.points - pose[:3, 3]) @ pose[:3, :3]
             n = crop.normals @ pose[:3, :3]
-            J, r, w, _ = _system(model, q, n, distance, config.facing_cos)
+            H, g, r, _, _ = _system(model, q, n, distance, config.facing_cos)
             if len(r) < 6:
                 return Registration(pose, np.zeros((6, 6)), 0.0, np.inf, int(len(r)))
             scale = config.point_sigma**2 * max(1.0, len(r) / config.independent_points)
-            H = (J * w[:, None]).T @ J / scale + prior
-            g = (J * w[:, None]).T @ r / scale + prior @ offset(init, pose)
+            H = H / scale + prior
+            g = g / scale + prior @ offset(init, pose)
             delta = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), g)
             pose = retract(pose, delta)
             if np.linalg.norm(delta[:3]) < CONVERGED[0] and np.linalg.norm(delta[3:]) < CONVERGED[1]:
@@ -136,9 +159,8 @@ def register(crop: Crop, model: Model, init: np.ndarray, config: EstimatorConfig
     fine = config.icp_distances[-1]
     q = (crop.points - pose[:3, 3]) @ pose[:3, :3]
     n = crop.normals @ pose[:3, :3]
-    J, r, w, paired = _system(model, q, n, fine, config.facing_cos)
+    H, _, r, w, paired = _system(model, q, n, fine, config.facing_cos, with_points=False)
     count = int(paired.sum())
-    H = (J * w[:, None]).T @ J
     information = H / (config.point_sigma**2 * max(1.0, count / config.independent_points))
     rmse = float(np.sqrt(np.average(r**2, weights=w))) if count else np.inf
     return Registration(pose, information, count / len(crop), rmse, count)

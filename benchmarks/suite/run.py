@@ -101,9 +101,13 @@ def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Tr
     }
 
 
-def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, workers: int | None = None) -> list[dict]:
-    """Rows of figures for one sequence: ``truth`` and each of ``settings`` (its boxes drawn from ``seed``)."""
-    from annotate.tracking import TrackingConfig, track_sequence
+def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, workers: int | None = None, engine: str | None = None) -> list[dict]:
+    """Rows of figures for one sequence: ``truth`` and each of ``settings`` (its boxes drawn from ``seed``), tracked by
+    ``engine`` (annotate.engines; default: the default engine)."""
+    from annotate.engines import engine_name, tracking_engine
+
+    engine = engine_name(engine)
+    track_sequence = tracking_engine(engine).track_sequence
 
     sequence, truth = open_sequence(root), open_truth(root)
     surface = true_surface(truth.mesh, measured_frames(sequence, truth))
@@ -112,13 +116,17 @@ def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, work
     rows = [{**base, "setting": "truth", **_reconstruction_scores(sequence, true_pose_annotation(truth, name), truth, surface)}]
     for setting in settings:
         placed = truth_annotation(truth, manual_frames(sequence.ids, setting.boxes), setting.degrees, setting.metres, setting.extents, seed=seed)
-        config = TrackingConfig() if workers is None else TrackingConfig(workers=workers)
+        config = None
+        if engine == "chains" and workers is not None:
+            from annotate.tracking import TrackingConfig
+
+            config = TrackingConfig(workers=workers)
         start, cpu = time.perf_counter(), _cpu_seconds()
         tracked = track_sequence(sequence, placed, config=config)
         wall, cpu = time.perf_counter() - start, _cpu_seconds() - cpu
         poses = {f: p.matrix for f, p in tracked.frames.items()}
         flagged = {f: bool(p.extra.get("flagged")) for f, p in tracked.frames.items()}
-        row = {**base, "setting": setting.name, **pose_scores(poses, flagged, truth.poses, truth.symmetry),
+        row = {**base, "setting": setting.name, "engine": engine, **pose_scores(poses, flagged, truth.poses, truth.symmetry),
                "ms_per_frame": 1000 * wall / len(sequence), "cpu_ms_per_frame": 1000 * cpu / len(sequence)}
         row.update(_reconstruction_scores(sequence, tracked, truth, surface))
         rows.append(row)
