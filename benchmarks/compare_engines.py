@@ -32,7 +32,7 @@ from sequences.truth import open_truth  # noqa: E402
 ENGINES = ("chains", "graph")
 COLUMNS = (("rot_median_deg", "rot med°", "{:.2f}"), ("rot_p90_deg", "p90°", "{:.2f}"), ("centre_median_mm", "ctr mm", "{:.1f}"),
            ("flagged_share", "flagged", "{:.0%}"), ("unflagged_over_5deg", ">5° unfl.", "{:d}"), ("unflagged_over_10mm", ">10mm unfl.", "{:d}"),
-           ("ms_per_frame", "ms/f", "{:.0f}"))
+           ("ms_per_frame", "ms/f", "{:.0f}"), ("cpu_ms_per_frame", "cpu ms/f", "{:.0f}"))
 
 
 def tracker(engine: str):
@@ -44,12 +44,13 @@ def tracker(engine: str):
 
 
 def run(engine: str, root: Path, placed, truth) -> dict:
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     tracked = tracker(engine)(open_sequence(root), placed)
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu
     poses = {f: p.matrix for f, p in tracked.frames.items()}
     flagged = {f: bool(p.extra.get("flagged")) for f, p in tracked.frames.items()}
-    return {**pose_scores(poses, flagged, truth.poses, truth.symmetry), "ms_per_frame": 1000 * wall / len(poses)}
+    return {**pose_scores(poses, flagged, truth.poses, truth.symmetry), "ms_per_frame": 1000 * wall / len(poses),
+            "cpu_ms_per_frame": 1000 * cpu / len(poses)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
                     row = {"sequence": entry.name, "category": entry.category, "setting": setting.name, "engine": engine, **run(engine, root, placed, truth)}
                     stored.write_text(json.dumps(row))
                 rows.append(row)
-                print(" | ".join([f"{entry.name:24s}", setting.name, f"{engine:6s}"] + [fmt.format(row[key]) for key, _, fmt in COLUMNS]), flush=True)
+                print(" | ".join([f"{entry.name:24s}", setting.name, f"{engine:6s}"] + [fmt.format(row.get(key, np.nan)) if fmt != "{:d}" else fmt.format(row[key]) for key, _, fmt in COLUMNS]), flush=True)
     print()
     print("| category | setting | engine | seqs | " + " | ".join(title for _, title, _ in COLUMNS) + " |")
     print("|" + "---|" * (4 + len(COLUMNS)))
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 cells = []
                 for key, _, fmt in COLUMNS:
-                    values = [r[key] for r in chosen]
+                    values = [r.get(key, np.nan) for r in chosen]
                     value = int(np.sum(values)) if fmt == "{:d}" else float(np.median(values))
                     cells.append(fmt.format(value))
                 print(f"| {category} | {setting} | {engine} | {len(chosen)} | " + " | ".join(cells) + " |")

@@ -100,9 +100,9 @@ class _Setup:
         registration moved it (at most CROP_PASSES times): a crop at a pose degrees off holds what lies beside the
         object there (a hand, the table) and misses part of it, and those points hold the pose back."""
         pose = start
-        for _ in range(CROP_PASSES):
+        for passes in range(CROP_PASSES):
             crop = self.crop(frame_id, pose)
-            result = register(crop, model, pose, self.config, self.motion_prior)
+            result = register(crop, model, pose, self.config, self.motion_prior, coarse=passes == 0)
             degrees, metres = _moved(pose[None], result.pose[None])
             pose = result.pose
             if degrees < RECROP_DEG and metres < RECROP_M:

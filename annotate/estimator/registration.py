@@ -27,8 +27,8 @@ from .observations import Crop
 
 #: nearest model points searched for one that faces the same way
 FACING_CANDIDATES = 2
-#: an iteration moving the pose less than this (rad, m) ends the stage: 0.01 deg and 0.02 mm
-CONVERGED = (1.7e-4, 2e-5)
+#: an iteration moving the pose less than this (rad, m) ends the stage: 0.02 deg and 0.05 mm
+CONVERGED = (3.5e-4, 5e-5)
 #: weight of the point-to-point term beside the point-to-plane one (its residuals count this much, squared)
 POINT_WEIGHT = 0.3
 #: the Cauchy weight's scale, as a share of the stage's correspondence distance
@@ -114,10 +114,14 @@ def _system(model: Model, q: np.ndarray, n: np.ndarray, distance: float, facing_
     H = (jacobian * weight[:, None]).T @ jacobian
     g = (jacobian * weight[:, None]).T @ residual
     if POINT_WEIGHT > 0 and len(qp) and with_points:
-        point_jacobian = np.concatenate([_skew(qp), np.broadcast_to(-np.eye(3), (len(qp), 3, 3))], axis=2)  # d(q - m)/d(w, v)
+        # d(q - m)/d(w, v) = [[q]x, -I]: its normal equations in closed form
         w = POINT_WEIGHT**2 * weight
-        H = H + np.einsum("k,kia,kib->ab", w, point_jacobian, point_jacobian)
-        g = g + np.einsum("k,kia,ki->a", w, point_jacobian, qp - m)
+        e = qp - m
+        sq = w @ np.einsum("ij,ij->i", qp, qp)
+        top_left = sq * np.eye(3) - (qp * w[:, None]).T @ qp
+        top_right = _skew((w @ qp)[None])[0]
+        H = H + np.block([[top_left, top_right], [top_right.T, w.sum() * np.eye(3)]])
+        g = g + np.concatenate([-(w @ np.cross(qp, e)), -(w @ e)])
     return H, g, residual, weight, paired
 
 
@@ -130,19 +134,19 @@ def offset(init: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.concatenate([w, init[:3, :3].T @ (pose[:3, 3] - init[:3, 3])])
 
 
-def register(crop: Crop, model: Model, init: np.ndarray, config: EstimatorConfig, prior: np.ndarray | None = None) -> Registration:
+def register(crop: Crop, model: Model, init: np.ndarray, config: EstimatorConfig, prior: np.ndarray | None = None, coarse: bool = True) -> Registration:
     """The pose of ``crop`` (camera frame) against ``model`` (object frame), from ``init`` (object to camera).
 
     ``prior`` (6x6 information over (w, v)) holds the pose near ``init`` where the points leave a direction free (a
     mug's spin with its handle hidden): a maximum a posteriori registration, whose returned information is the
-    points' alone.
+    points' alone. Without ``coarse`` only the fine stage runs (a start already within the fine distance).
     """
     init = np.asarray(init, dtype=np.float64)
     pose = init.copy()
     prior = np.zeros((6, 6)) if prior is None else prior
     if len(crop) < 6 or len(model) < 6:
         return Registration(pose, np.zeros((6, 6)), 0.0, np.inf, 0)
-    for distance in config.icp_distances:
+    for distance in config.icp_distances if coarse else config.icp_distances[-1:]:
         for _ in range(config.icp_iterations):
             q = (crop.points - pose[:3, 3]) @ pose[:3, :3]
             n = crop.normals @ pose[:3, :3]
