@@ -221,3 +221,21 @@ def test_annotate_track_with_the_graph_engine(scene, tmp_path):
     assert len(load_annotation(path).frames) == FRAMES
     wrong = subprocess.run([sys.executable, "-m", "annotate.cli", str(root), "--engine", "graph"], capture_output=True, text=True, timeout=60)
     assert wrong.returncode == 2 and "--engine applies to --track only" in wrong.stderr
+
+
+def test_the_same_poses_for_any_worker_count(scene):
+    from dataclasses import replace
+
+    root, truth, annotation = scene
+    sequence = open_sequence(root)
+    ids = sorted(truth)
+    one = track_sequence(sequence, annotation, config=EstimatorConfig(workers=1))
+    import annotate.estimator.pipeline as pipeline
+
+    floor, pipeline.MIN_FRAMES_FOR_WORKERS = pipeline.MIN_FRAMES_FOR_WORKERS, 1  # the scene is shorter than forking pays for
+    try:
+        two = track_sequence(sequence, annotation, config=replace(EstimatorConfig(), workers=2))
+    finally:
+        pipeline.MIN_FRAMES_FOR_WORKERS = floor
+    for frame_id in ids:
+        np.testing.assert_array_equal(one.frames[frame_id].matrix, two.frames[frame_id].matrix)

@@ -33,13 +33,13 @@ class EstimatorConfig:
     motion_sigma_m: float = 0.003  #: ... and of the centre's velocity (m per frame)
     robust_k: float = 2.0  #: Cauchy kernel width of the registration factors, in their standard deviations
     rounds: int = 3  #: rounds of fusing the model of all frames and registering every frame to it, at most
-    settled_deg: float = 0.05  #: ... fewer once a round moved no frame more than this
-    settled_m: float = 0.0002  #: ... and no frame more than this (m)
+    settled: tuple[float, float] = (0.05, 0.0002)  #: ... fewer once a round moved no frame more than this (deg, m)
     free_space_tolerance: float = 0.01  #: a model voxel a frame sees this far (m) beyond counts as free in that frame
     max_free_share: float = 0.25  #: model voxels seen through in more than this share of the frames that see them are dropped (a hand that moved)
     min_fitness: float = 0.5  #: flag a frame whose points pair with the model at a lower share than this
     max_uncertainty: tuple[float, float] = (2.0, 0.003)  #: flag a frame whose marginal standard deviation exceeds this (deg, m)
     max_disagreement: tuple[float, float] = (3.0, 0.006)  #: flag a frame whose registration and solved pose differ more (deg, m)
+    workers: int = 0  #: processes for the chains and the rounds' registrations (0: the cores available, at most 4; 1: none); the same poses for any count
 
     def voxel_for(self, extents: np.ndarray) -> float:
         """Point spacing (m) for an object of these extents (m)."""
@@ -54,6 +54,8 @@ class EstimatorConfig:
                 raise ValueError(f"estimator setting {name} must be positive, got {getattr(self, name)}")
         if not 0 < self.icp_distances[1] <= self.icp_distances[0]:
             raise ValueError(f"icp_distances must be positive, coarse first, got {self.icp_distances}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be 0 (the cores available) or more, got {self.workers}")
         if not 0 <= self.min_fitness <= 1 or not 0 <= self.max_free_share <= 1:
             raise ValueError("min_fitness and max_free_share are shares between 0 and 1")
         return self

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -27,6 +28,7 @@ from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
 from annotate.tracking.symmetry import fit_symmetry_axis, snap_upright
+from annotate.tracking.workers import ordered_map, resolve
 
 from .config import EstimatorConfig
 from .graph import Factor, Solution, sigmas, solve
@@ -38,6 +40,8 @@ from .timing import colour_offsets, shifted, velocities
 
 Progress = Callable[[int, int], None]
 
+#: shorter ranges run on one process: forking and gathering cost about 30 ms a map
+MIN_FRAMES_FOR_WORKERS = 40
 #: a frame is registered, and cropped again at the result, at most this many times ...
 CROP_PASSES = 3
 #: ... until the registration moves it less than this (deg, m): the crop then holds the same points
@@ -82,6 +86,11 @@ class _Setup:
         self.half = np.asarray(annotation.extents, dtype=np.float64) / 2 * (1 + config.crop_slack) + config.crop_margin
         self.symmetric = annotation.symmetry == "y"
         self.offsets = colour_offsets(sequence, ids)
+        # forked workers read the frames the parent read before the fork: read them all first
+        self.workers = 1 if len(ids) < MIN_FRAMES_FOR_WORKERS else resolve(config.workers)
+        if self.workers > 1:
+            for frame_id in ids:
+                self.crops.depth(frame_id)
         #: a registration's pull towards the pose it starts from: the motion sigma (the start is a prediction)
         self.motion_prior = np.diag(1.0 / sigmas(config.motion_sigma_deg, config.motion_sigma_m) ** 2)
 
@@ -148,17 +157,20 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
     nearest = np.full(len(ids), np.inf)
     steps: list[Factor] = []
     anchor_parts = [_object_part(setup.crop(a, placed[a], thin=False), placed[a]) for a in anchors]
+    jobs = []  # (anchor, its position, the frames its chain runs through)
     for n, (a, mark) in enumerate(zip(anchors, marks)):
         initial[mark], nearest[mark] = placed[a], 0
         after = ids[mark + 1 : marks[n + 1]] if n + 1 < len(marks) else ids[mark + 1 :]
         before = ids[marks[n - 1] + 1 : mark][::-1] if n > 0 else ids[:mark][::-1]
-        for order in (after, before):
-            poses, chain_steps = _chain(setup, a, placed[a], order, anchor_parts, done)
-            steps += chain_steps
-            for frame_id, pose in poses.items():
-                distance = abs(index[frame_id] - mark)
-                if distance < nearest[index[frame_id]]:
-                    initial[index[frame_id]], nearest[index[frame_id]] = pose, distance
+        jobs += [(a, mark, order) for order in (after, before) if order]
+    chains = ordered_map(lambda job: _chain(setup, job[0], placed[job[0]], job[2], anchor_parts, lambda: None), jobs, setup.workers,
+                         done=lambda job, _: [done() for _ in job[2]])
+    for (a, mark, _), (poses, chain_steps) in zip(jobs, chains):
+        steps += chain_steps
+        for frame_id, pose in poses.items():
+            distance = abs(index[frame_id] - mark)
+            if distance < nearest[index[frame_id]]:
+                initial[index[frame_id]], nearest[index[frame_id]] = pose, distance
     return initial, steps
 
 
@@ -186,18 +198,16 @@ def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None]) -> dict[s
     it is; the other blocks saw the object at poses the chains reached independently."""
     config, ids = setup.config, setup.ids
     at = {f: poses[setup.index[f]] for f in ids}
-    parts = {f: setup.crop(f, at[f], thin=False) for f in ids}
+    parts = dict(zip(ids, ordered_map(lambda f: setup.crop(f, at[f], thin=False), ids, setup.workers)))
     blocks = np.array_split(np.arange(len(ids)), min(ROUND_BLOCKS, len(ids)))
-    registrations = {}
-    for block in blocks:
+    models, block_of = [], {}
+    for b, block in enumerate(blocks):
         inside = {ids[k] for k in block}
         others = {f: (c.points, c.normals) for f, c in parts.items() if f not in inside} or {f: (c.points, c.normals) for f, c in parts.items()}
-        model = fused_model(setup.crops, at, others, config.free_space_tolerance, config.max_free_share)
-        for k in block:
-            f = ids[k]
-            registrations[f] = setup.register(f, at[f], model)[0]
-            done()
-    return registrations
+        models.append(fused_model(setup.crops, at, others, config.free_space_tolerance, config.max_free_share))
+        block_of.update({f: b for f in inside})
+    results = ordered_map(lambda f: setup.register(f, at[f], models[block_of[f]])[0], ids, setup.workers, done=lambda f, _: done())
+    return dict(zip(ids, results))
 
 
 def _upright(setup: _Setup, poses: np.ndarray) -> np.ndarray:
@@ -206,7 +216,7 @@ def _upright(setup: _Setup, poses: np.ndarray) -> np.ndarray:
     sphere's, do not) and it lies within MAX_UPRIGHT_DEG of y. The anchors set the object frame; for a body of
     revolution its shape sets the axis more exactly than the boxes' average (each off by a few degrees)."""
     at = {f: poses[setup.index[f]] for f in setup.ids}
-    parts = {f: setup.crop(f, at[f], thin=False) for f in setup.ids}
+    parts = dict(zip(setup.ids, ordered_map(lambda f: setup.crop(f, at[f], thin=False), setup.ids, setup.workers)))
     config = setup.config
     model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
     if len(model) < 50:
@@ -265,7 +275,7 @@ def track_sequence(
         new = common_correction(solution.poses, anchored, setup.offsets)
         degrees, metres = _moved(poses, new)
         poses = new
-        if degrees < config.settled_deg and metres < config.settled_m:
+        if degrees < config.settled[0] and metres < config.settled[1]:
             break
     if setup.symmetric:
         poses = _upright(setup, poses)
@@ -306,7 +316,7 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
         start = annotation.frames[others[0]].matrix
     else:
         raise ValueError("no posed frame to start from: place a box first")
-    setup = _Setup(sequence, annotation, ids, config)
+    setup = _Setup(sequence, annotation, ids, replace(config, workers=1))  # a few frames: forking would not pay
     sources = others[: config.chain_model_frames] or [frame_id]
     at = {f: (annotation.frames[f].matrix if f != frame_id else start) for f in sources}
     parts = {f: setup.crop(f, at[f], thin=False) for f in sources}
