@@ -2,7 +2,8 @@
 
 :class:`App` ties the shared session (:mod:`.app_state`), the display frames (:mod:`.app_frames`),
 the 3D scene (:mod:`.app_scene`), the 2D views (:mod:`.app_views`), the guide (:mod:`.app_guide`) and the
-panels for editing (:mod:`.app_editing`), tracking (:mod:`.app_tracking`), review (:mod:`.app_review`) and the
+panels for placing by pointing (:mod:`.app_placing`), editing the box (:mod:`.app_editing`), moving and turning it
+(:mod:`.app_moving`), tracking (:mod:`.app_tracking`), review (:mod:`.app_review`) and the
 model (:mod:`.app_model`); :mod:`.app_serve` starts it. All GUI and scene elements are the server's, so every
 browser tab shows the same state; only the viewer camera is per tab. The page counts frames from 1; the session
 (``AppState.frame``) from 0.
@@ -25,6 +26,8 @@ from .app_editing import EditingPanel
 from .app_frames import FrameCache
 from .app_guide import Hotkey, guide_markdown, key_label
 from .app_model import ModelPanel
+from .app_moving import MovePanel
+from .app_placing import PlacingPanel
 from .app_review import ReviewPanel, mark_fixed, reviewed_count
 from .app_scene import SceneView
 from .app_state import AppState
@@ -80,7 +83,9 @@ class App:
             self.timeline = gui.add_image(timeline_image(self.state.statuses(), 0), label="Timeline", format="png")
             gui.add_markdown(timeline_legend())
             self.overlay = gui.add_image(first.image[::2, ::2], label="Colour image and box", format="jpeg", jpeg_quality=85)
+        self.placing = PlacingPanel(self)
         self.editing = EditingPanel(self)
+        self.moving = MovePanel(self)
         self.tracking = TrackingPanel(self)
         self.review = ReviewPanel(self)
         self.model = ModelPanel(self)

@@ -1,6 +1,7 @@
-"""The editing panel: gizmo and face drags, extents, nudges, turns and flips, fit, snap upright, category, undo/redo.
+"""The box panel: gizmo and face drags, extents, fit, snap upright, category, undo/redo.
 
-Each action is one undoable change of the shared document (saved at once). Hotkeys are viser
+Steps along and about the axes are the move panel's (app_moving), placing by pointing the placing panel's
+(app_placing). Each action is one undoable change of the shared document (saved at once). Hotkeys are viser
 commands (also in its command palette, cmd/ctrl+K).
 """
 
@@ -11,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from evaluate.geometry import quat_to_matrix
-from sequences.annotation import CATEGORIES, SYMMETRIES, default_symmetry
+from sequences.annotation import CATEGORIES, SYMMETRIES
 from sequences.pointcloud import frame_points
 
 from . import box_edits
@@ -20,9 +21,6 @@ from .app_scene import FACES, xyzw
 if TYPE_CHECKING:
     from .app import App
 
-NUDGE_STEPS_MM = ("1", "2", "5", "10", "20")
-#: Keys that move the box along its x, y, z: (minus, plus).
-MOVE_KEYS = (("J", "L"), ("K", "I"), ("O", "P"))
 #: Snap upright trusts an estimated symmetry axis only this close to the box's y (degrees).
 MAX_AXIS_SNAP_DEG = 20.0
 
@@ -35,18 +33,13 @@ class EditingPanel:
         gui = app.server.gui
         with gui.add_folder("Box"):
             self.category = gui.add_dropdown("Category", CATEGORIES, initial_value=app.state.annotation.category,
-                                             hint="the object's category; bottle, bowl and can also set symmetry y")
+                                             hint="the object's category: sets the typical box size until you size it; bottle, bowl and can also set symmetry y")
             self.symmetry = gui.add_dropdown("Symmetry", SYMMETRIES, initial_value=app.state.annotation.symmetry, hint="y: rotationally symmetric about object +y")
             e = app.state.annotation.extents * 1000
             self.extent_inputs = [
                 gui.add_number(f"{name} (mm)", initial_value=float(round(v, 1)), min=1.0, max=5000.0, step=0.5, hint=f"the box's full side along object {a}, mm")
                 for name, a, v in zip(("Width x", "Height y", "Depth z"), ("x", "y (up)", "z (front: -z)"), e)
             ]
-            self.step = gui.add_dropdown("Nudge step (mm)", NUDGE_STEPS_MM, initial_value="2", hint="how far a Move button or key moves the box")
-            self.move = [gui.add_button_group(f"Move along {a}", ("-", "+"), hint=f"along the box's own {a} axis; keys {minus} and {plus}")
-                         for a, (minus, plus) in zip("xyz", MOVE_KEYS)]
-            self.turn90 = gui.add_button_group("Turn 90° about", ("x", "y", "z"), hint="about the box's own axes; keys 4, 5, 6")
-            self.flip180 = gui.add_button_group("Flip 180° about", ("x", "y", "z"), hint="about the box's own axes; keys 1, 2, 3")
             self.place = gui.add_button("Place box in this frame")
             self.fit = gui.add_button(app.key_label("Fit box to points", "G"))
             self.upright = gui.add_button(app.key_label("Snap upright", "U"))
@@ -60,10 +53,6 @@ class EditingPanel:
         self.symmetry.on_update(self._on_symmetry)
         for axis, number in enumerate(self.extent_inputs):
             number.on_update(lambda event, axis=axis: self._on_extent(axis, event.target.value))
-        for axis, group in enumerate(self.move):
-            group.on_click(lambda event, axis=axis: self.nudge(axis, 1 if event.target.value == "+" else -1))
-        self.turn90.on_click(lambda event: self.turn("xyz".index(event.target.value), 90.0))
-        self.flip180.on_click(lambda event: self.turn("xyz".index(event.target.value), 180.0))
         self.place.on_click(lambda _: self.place_here())
         self.fit.on_click(lambda _: self.fit_to_points())
         self.upright.on_click(lambda _: self.snap_upright())
@@ -78,12 +67,6 @@ class EditingPanel:
         app.add_command("Redo", "Y", lambda: state.redo(), modifier="cmd/ctrl")
         app.add_command("Fit box to points", "G", self.fit_to_points, description="shrink or grow the box to the points inside it")
         app.add_command("Snap upright", "U", self.snap_upright, description="symmetric categories: the box's y on the object's axis, the free turn canonical")
-        for axis, (minus, plus) in enumerate(MOVE_KEYS):
-            app.add_command(f"Move -{'xyz'[axis]}", minus, lambda axis=axis: self.nudge(axis, -1))
-            app.add_command(f"Move +{'xyz'[axis]}", plus, lambda axis=axis: self.nudge(axis, 1))
-        for axis in range(3):
-            app.add_command(f"Flip 180° about {'xyz'[axis]}", str(axis + 1), lambda axis=axis: self.turn(axis, 180.0))
-            app.add_command(f"Turn 90° about {'xyz'[axis]}", str(axis + 4), lambda axis=axis: self.turn(axis, 90.0))
 
     # --- sync from the state -------------------------------------------------------------
     def sync(self, extents, category: str, symmetry: str) -> None:
@@ -95,21 +78,7 @@ class EditingPanel:
 
     # --- actions -------------------------------------------------------------------------
     def _box(self):
-        state = self.app.state
-        with state.lock:
-            pose, own = state.pose()
-            return pose.position.copy(), pose.orientation.copy(), state.annotation.extents.copy(), own
-
-    def nudge(self, axis: int, sign: int) -> None:
-        """Move the box by the nudge step along its own axis."""
-        position, orientation, _, _ = self._box()
-        step = float(self.step.value) / 1000.0
-        self.app.commit_box(box_edits.nudge(position, orientation, axis, sign * step), orientation)
-
-    def turn(self, axis: int, degrees: float) -> None:
-        """Turn the box about its own axis (90) or flip it (180)."""
-        position, orientation, _, _ = self._box()
-        self.app.commit_box(position, box_edits.turn(orientation, axis, degrees))
+        return self.app.state.box()
 
     def place_here(self) -> None:
         position, orientation, _, _ = self._box()
@@ -173,13 +142,7 @@ class EditingPanel:
     def _on_category(self, event) -> None:
         if self.app.is_syncing:
             return
-        category = event.target.value
-
-        def change(doc) -> None:
-            doc.category = category
-            doc.symmetry = default_symmetry(category)
-
-        self.app.state.edit(change)
+        self.app.state.set_category(event.target.value)
 
     def _on_symmetry(self, event) -> None:
         if self.app.is_syncing:

@@ -19,7 +19,8 @@ from sequences.reader import Sequence
 
 @dataclass
 class DisplayFrame:
-    """One frame for the scene: camera-frame points (N, 3) float32 m, colours (N, 3) uint8, image (H, W, 3) uint8."""
+    """One frame for the scene: camera-frame points (N, 3) float32 m, colours (N, 3) uint8, image (H, W, 3) uint8, and
+    its depth (H, W) m (0: none) for placing by a click."""
 
     index: int
     points: np.ndarray
@@ -27,6 +28,7 @@ class DisplayFrame:
     image: np.ndarray
     median_depth: float
     origin: np.ndarray  # (3,) float64 m: a point near the cloud's middle; positions are sent relative to it
+    depth: np.ndarray | None = None
 
 
 def load_display_frame(sequence: Sequence, index: int, stride: int = 2) -> DisplayFrame:
@@ -41,7 +43,7 @@ def load_display_frame(sequence: Sequence, index: int, stride: int = 2) -> Displ
     origin = np.array([0.0, 0.0, median])
     if z.size:
         origin[:2] = points[points.shape[0] // 2, :2]  # the middle pixel row's point: near the data, cheap
-    return DisplayFrame(index, points, np.ascontiguousarray(colors, dtype=np.uint8), image, median, origin)
+    return DisplayFrame(index, points, np.ascontiguousarray(colors, dtype=np.uint8), image, median, origin, np.asarray(depth, dtype=np.float32))
 
 
 class FrameCache:

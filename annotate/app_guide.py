@@ -10,17 +10,26 @@ from dataclasses import dataclass
 
 #: The workflow, one line per step: (step, what to do).
 WORKFLOW = (
-    ("Place", "choose the category and the box's size (Box). In a frame where the object is clear, drag the box onto it: "
-              "the gizmo moves and turns it, a face's arrow moves that face, the Move and Turn buttons step it. "
-              "The green face is the top (+y), the blue one the front, a mug's handle side (-z). Do this in 2-3 frames "
-              "spread over the sequence."),
-    ("Refine", "R registers the box to the frame's points and the other posed frames: a box that is close snaps on."),
-    ("Track", "Track all frames gives every frame a pose from your boxes (your placed boxes are its anchors)."),
+    ("Place", "choose the category (Box): the box takes its typical size. In a frame where the object is clear, click "
+              "it in the 3D view (or look through the camera, H, and click it in the colour image): the box lands on it, "
+              "fitted to the depth there. Shift+drag a rectangle around the object to give its outline (its size). "
+              "Then set it right: the arrow keys move it as you see it (PgUp/PgDn away/toward), Shift+arrows turn it, "
+              "the gizmo moves and turns it, a face's arrow moves that face. The green face is the top (+y, "
+              "labelled), the blue one the front, a mug's handle side (-z). Do this in 2-3 frames spread over the sequence."),
+    ("Refine", "R registers the box to the frame's points and the other posed frames: a box that is close snaps on; "
+               "where it cannot, the box stays and the page says why."),
+    ("Track", "Track all frames gives every frame a pose from your boxes: placed, refined and accepted boxes are its "
+              "anchors and stay as they are (the Tracking panel lists them before a run, and what changed after it)."),
     ("Review", "the Review list holds the flagged frames, worst first: F goes to the next; fix the box (then R), or "
                "accept it (E) when it is right, or reject it (X)."),
     ("Preview", "Model and export > Preview mesh carves the posed frames: do the boxes agree?"),
     ("Export", "Export ground truth writes annotations.json and the mesh (REDWOOD75's format)."),
 )
+
+
+#: How the page writes viser's modifiers and special keys.
+MODIFIER_NAMES = {"cmd/ctrl": "Ctrl", "alt": "Alt", "shift": "Shift"}
+KEY_NAMES = {"arrowleft": "←", "arrowright": "→", "arrowup": "↑", "arrowdown": "↓", "pageup": "PgUp", "pagedown": "PgDn"}
 
 
 @dataclass(frozen=True)
@@ -33,8 +42,9 @@ class Hotkey:
 
     @property
     def shown(self) -> str:
-        """The key as the page writes it: "N", "Ctrl+Z"."""
-        return f"{'Ctrl+' if self.modifier == 'cmd/ctrl' else ''}{self.key}"
+        """The key as the page writes it: "N", "Ctrl+Z", "Shift+←", "PgUp"."""
+        prefix = "".join(f"{MODIFIER_NAMES[part]}+" for part in (self.modifier or "").split("+") if part)
+        return prefix + KEY_NAMES.get(self.key, self.key)
 
 
 def key_label(label: str, key: str, modifier: str | None = None) -> str:

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from evaluate.geometry import BOX_EDGES, box_corners
 
 from .app_frames import DisplayFrame
-from .app_views import AXIS_COLORS, TINT_OPACITY, TINTED_FACES, edge_axes, face_corners, sensor_fov
+from .app_views import AXIS_COLORS, TINT_OPACITY, TINTED_FACES, edge_axes, face_centre, face_corners, sensor_fov
 
 BOX = "/box"
 #: Face handles: (name, axis, sign).
@@ -64,6 +64,7 @@ class SceneView:
         self.gizmo = self.scene.add_transform_controls(BOX, scale=0.12, depth_test=False, opacity=0.9)
         self.face_handles: dict[str, viser.TransformControlsHandle] = {}
         self.tints: dict[str, viser.MeshHandle] = {}  # by TintedFace.name
+        self.face_labels: dict[str, viser.LabelHandle] = {}  # by TintedFace.name: "top", "front" on the faces
         self.cloud = None
         self.frustum = None
         self.model = None
@@ -113,7 +114,8 @@ class SceneView:
         self._box_key = key
 
     def _draw_box(self, extents, own_pose: bool) -> None:
-        """Box geometry below the gizmo: axis-coloured edges and the tinted faces (app_views.TINTED_FACES).
+        """Box geometry below the gizmo: axis-coloured edges, the tinted faces (app_views.TINTED_FACES) and their
+        words ("top", "front") at their centres.
 
         A frame without its own pose shows the borrowed box dashed-looking (thin, grey edges).
         """
@@ -130,6 +132,8 @@ class SceneView:
             self.tints[face.name] = self.scene.add_mesh_simple(
                 f"{BOX}/{face.name}", vertices, faces, color=face.color, opacity=TINT_OPACITY, side="double", cast_shadow=False, receive_shadow=False
             )
+            self.face_labels[face.name] = self.scene.add_label(f"{BOX}/{face.name}_label", face.label, position=face_centre(extents, face.axis, face.sign),
+                                                               anchor="center-center", font_screen_scale=0.9)
         if self.extents is None or not np.array_equal(self.extents, extents):
             self.place_face_handles(extents)
         self.extents = extents

@@ -33,11 +33,12 @@ from sequences.atomic import write_bytes_atomic
 from sequences.errors import InputError
 from sequences.lock import DocumentLock
 from sequences.reader import Sequence
+from sequences.typical_extents import typical_extents
 
 from .app_review import Flagged, is_flagged, mark_fixed, next_in_review, review_list, review_thresholds
 
-#: Box side length (m) of a new document's first box.
-DEFAULT_BOX_SIZE = 0.10
+#: Box side length (m) of a new document's first box when its category is ``other`` (sequences.typical_extents).
+DEFAULT_BOX_SIZE = float(typical_extents("other")[0])
 #: Half width (px) of the centre window whose median depth places a new document's first box.
 CENTRE_WINDOW = 20
 UNDO_DEPTH = 200
@@ -79,14 +80,24 @@ def default_position(sequence: Sequence, frame: int = 0, window: int = CENTRE_WI
 
 
 def new_document(sequence: Sequence, category: str = "other") -> Annotation:
-    """A fresh document: named after the folder, a 10 cm box at the centre depth of the first frame."""
+    """A fresh document: named after the folder, the category's typical box (sequences.typical_extents)."""
     annotation = Annotation(
         sequence=sequence.name,
         category=category,
         symmetry=default_symmetry(category),
-        extents=np.full(3, DEFAULT_BOX_SIZE),
+        extents=typical_extents(category),
     )
     return annotation
+
+
+def change_category(doc: Annotation, category: str) -> None:
+    """Set the document's category and its default symmetry; the extents become the new category's typical ones
+    while they are still the old category's (nobody sized the box yet): a default, never a code path."""
+    untouched = np.allclose(doc.extents, typical_extents(doc.category), atol=1e-6)
+    doc.category = category
+    doc.symmetry = default_symmetry(category)
+    if untouched:
+        doc.extents = typical_extents(category)
 
 
 class AppState:
@@ -179,7 +190,7 @@ class AppState:
         """The box pose shown in a frame and whether the frame has its own.
 
         A frame without a pose shows the pose of the nearest frame that has one, or the default
-        box (10 cm, at the centre depth of the first frame, upright facing the camera).
+        box (the document's extents, at the centre depth of the first frame, upright facing the camera).
         """
         with self.lock:
             frame_id = frame_id or self.frame_id
@@ -193,6 +204,13 @@ class AppState:
                 src = self.annotation.frames[nearest]
                 return FramePose(src.position.copy(), src.orientation.copy(), "manual"), False
             return FramePose(self._default_position.copy(), FACING_CAMERA.copy(), "manual"), False
+
+    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """The box shown in the current frame: copies of its position (3,) m, orientation (4,) x y z w and the
+        document's extents (3,) m, and whether the frame has its own pose (see :meth:`pose`)."""
+        with self.lock:
+            pose, own = self.pose()
+            return pose.position.copy(), pose.orientation.copy(), self.annotation.extents.copy(), own
 
     # --- changes ---------------------------------------------------------------------------
     def edit(self, change: Callable[[Annotation], None]) -> None:
@@ -227,6 +245,10 @@ class AppState:
             doc.frames[frame_id] = FramePose(position.copy(), orientation.copy(), source, extra)
 
         self.edit(change)
+
+    def set_category(self, category: str) -> None:
+        """Change the category (see :func:`change_category`), as one undoable change."""
+        self.edit(lambda doc: change_category(doc, category))
 
     def set_extents(self, extents) -> None:
         extents = np.asarray(extents, dtype=np.float64)

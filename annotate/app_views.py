@@ -29,17 +29,19 @@ STATUS_COLORS = {
 
 @dataclass(frozen=True)
 class TintedFace:
-    """A box face drawn filled, in the 3D view and on the colour image alike: object ``axis`` (0 x, 1 y, 2 z), the
-    side ``sign`` (+1, -1), RGB ``color``."""
+    """A box face drawn filled and labelled, in the 3D view and on the colour image alike: object ``axis`` (0 x, 1 y,
+    2 z), the side ``sign`` (+1, -1), RGB ``color``, the word written on it."""
 
     name: str
     axis: int
     sign: int
     color: tuple[int, int, int]
+    label: str
 
 
-#: The faces that show which way the box is: up (+y, green) and front / handle side (-z, blue, as in REDWOOD75 and NOCS).
-TINTED_FACES = (TintedFace("up", 1, 1, (70, 220, 90)), TintedFace("front", 2, -1, (70, 140, 255)))
+#: The faces that show which way the box is: the top (+y, green) and the front / handle side (-z, blue, as in
+#: REDWOOD75 and NOCS).
+TINTED_FACES = (TintedFace("up", 1, 1, (70, 220, 90), "top"), TintedFace("front", 2, -1, (70, 140, 255), "front"))
 #: Opacity of the tinted faces (0-1): the points and the image show through.
 TINT_OPACITY = 0.35
 
@@ -65,8 +67,16 @@ def project_box(camera: Camera, position, orientation, extents) -> tuple[np.ndar
     return camera.project(corners)
 
 
-def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, width: int = 2, scale: float = 1.0) -> np.ndarray:
-    """A copy of ``image`` with the box's edges drawn (coloured by axis) and up/front faces tinted.
+def face_centre(extents, axis: int, sign: int) -> np.ndarray:
+    """The centre (3,) of a box face, object frame (m)."""
+    centre = np.zeros(3)
+    centre[axis] = sign * float(np.asarray(extents, dtype=np.float64)[axis]) / 2
+    return centre
+
+
+def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, width: int = 2, scale: float = 1.0, labels: bool = True) -> np.ndarray:
+    """A copy of ``image`` with the box's edges drawn (coloured by axis), the top and front faces tinted and (with
+    ``labels``) their words written at their centres.
 
     ``image`` (h, w, 3) uint8 is the camera's image resized by ``scale`` (e.g. 0.5 for a half-size
     preview). Edges with a corner behind the camera are left out rather than drawn wrapped around.
@@ -86,6 +96,14 @@ def draw_box(image: np.ndarray, camera: Camera, position, orientation, extents, 
     for (a, b), axis in zip(BOX_EDGES, edge_axes()):
         if in_front[a] and in_front[b]:
             draw.line([tuple(map(float, uv[a])), tuple(map(float, uv[b]))], fill=tuple(int(c) for c in AXIS_COLORS[axis]) + (255,), width=width)
+    # the words at the faces' centres, where the face is in front of the camera
+    T = pose_matrix(position, orientation)
+    for face in TINTED_FACES if labels else ():
+        centre = T[:3, :3] @ face_centre(extents, face.axis, face.sign) + T[:3, 3]
+        if centre[2] > 1e-3:
+            uv_centre, _ = camera.project(centre[None])
+            u, v = (uv_centre[0] + 0.5) * scale - 0.5
+            draw.text((float(u), float(v)), face.label, fill=(255, 255, 255, 255), anchor="mm", stroke_width=1, stroke_fill=(0, 0, 0, 255))
     return np.asarray(Image.alpha_composite(base, overlay).convert("RGB"))
 
 

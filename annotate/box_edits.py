@@ -2,7 +2,9 @@
 
 A box is (position (3,) m in the camera frame, orientation (4,) x y z w object to camera,
 extents (3,) full side lengths along object x, y, z in m). Nudges, turns and face drags act
-along the box's own axes, which is how an annotator thinks of them ("move it along its height").
+along the box's own axes, which is how an annotator thinks of them ("move it along its height"),
+or along the camera's as the annotator sees them (:func:`nudge_camera`, :func:`turn_camera`: right, down and
+away from the camera; after a flip the box's +z may point at the camera, the camera's axes stay put).
 """
 
 from __future__ import annotations
@@ -24,10 +26,31 @@ def nudge(position, orientation, axis: int, step: float) -> np.ndarray:
 
 
 def turn(orientation, axis: int, degrees: float) -> np.ndarray:
-    """Orientation turned by ``degrees`` about the box's own ``axis`` (a 180 flip or a 90 turn)."""
+    """Orientation turned by ``degrees`` about the box's own ``axis`` (0 x, 1 y, 2 z): a typed angle, a step, a
+    90 turn or a 180 flip."""
     rotvec = np.zeros(3)
     rotvec[axis] = np.radians(degrees)
     q = (Rotation.from_quat(np.asarray(orientation, dtype=np.float64)) * Rotation.from_rotvec(rotvec)).as_quat()
+    return q * (1.0 if q[3] >= 0 else -1.0)
+
+
+def nudge_camera(position, axis: int, step: float) -> np.ndarray:
+    """Position moved by ``step`` metres as seen from the camera: ``axis`` 0 to the right (camera +x), 1 down
+    (camera +y), 2 away from the camera along the ray through the box centre (so it stays on the same pixel)."""
+    position = np.asarray(position, dtype=np.float64)
+    if axis == 2:
+        direction = position / np.linalg.norm(position)
+    else:
+        direction = np.eye(3)[axis]
+    return position + direction * step
+
+
+def turn_camera(orientation, axis: int, degrees: float) -> np.ndarray:
+    """Orientation turned by ``degrees`` about the camera's ``axis`` (0 x right, 1 y down, 2 z the view) through
+    the box centre: R' = R_axis R (the box turns as the annotator sees it, whatever way it faces)."""
+    rotvec = np.zeros(3)
+    rotvec[axis] = np.radians(degrees)
+    q = (Rotation.from_rotvec(rotvec) * Rotation.from_quat(np.asarray(orientation, dtype=np.float64))).as_quat()
     return q * (1.0 if q[3] >= 0 else -1.0)
 
 

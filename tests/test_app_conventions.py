@@ -31,7 +31,7 @@ def test_the_3d_box_and_the_2d_overlay_tint_the_same_faces():
         scene = SceneView(server, camera)
         scene.show_pose(position, orientation)
         scene.show_box(extents, own_pose=True)
-        overlay = draw_box(np.zeros((camera.height, camera.width, 3), np.uint8), camera, position, orientation, extents, width=1)
+        overlay = draw_box(np.zeros((camera.height, camera.width, 3), np.uint8), camera, position, orientation, extents, width=1, labels=False)
         R = Rotation.from_quat(np.roll(np.asarray(scene.gizmo.wxyz), -1)).as_matrix()  # the gizmo's pose: the 3D box's
         for face in TINTED_FACES:
             mesh = scene.tints[face.name]

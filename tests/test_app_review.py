@@ -94,7 +94,7 @@ def test_the_page_leads_through_the_review(app):
     assert "#1 of 3 in the review list" in app.tracking.info.content and "fitness 0.20" in app.tracking.info.content
     assert "fitness 0.9" not in app.tracking.info.content  # no dump of figures
     # the annotator fixes the box: the frame is marked reviewed and leaves the list
-    app.editing.move[0].value = "+"
+    app.moving.move[0].value = "+"
     doc = load_annotation(app.state.path)
     assert doc.frames[ids[2]].source == "manual" and doc.frames[ids[2]].extra == {"reviewed": "fixed"}
     assert app.state.status() == "manual" and "reviewed (fixed)" in app.title.content

@@ -63,7 +63,7 @@ def test_extents_inputs_flip_and_undo_redo_are_saved(app):
     np.testing.assert_allclose(load_annotation(path).extents, [0.05, 0.1, 0.1])
     pose, own = app.state.pose()
     assert not own  # extents are the document's; the frame still has no pose of its own
-    app.editing.flip180.value = "y"
+    app.moving.flip180.value = "y"
     doc = load_annotation(path)
     R0 = Rotation.from_quat(pose.orientation).as_matrix()
     R1 = doc.frames["0000001"].matrix[:3, :3]
