@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import os
 from types import ModuleType
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sequences.annotation import Annotation, FramePose
 
 ENGINES = ("graph", "chains")
 #: the engine used unless ``--engine`` or $REDWOOD_GT_ENGINE names another
@@ -32,3 +36,14 @@ def tracking_engine(name: str | None = None) -> ModuleType:
     from . import tracking
 
     return tracking
+
+
+def kept_by_a_person(pose: "FramePose") -> bool:
+    """Whether a frame's box is a person's: placed (``manual``), refined, or accepted in review."""
+    return pose.source in ("manual", "refined") or pose.extra.get("reviewed") == "accepted"
+
+
+def anchor_frames(annotation: "Annotation", ids: list[str]) -> list[str]:
+    """The frames of ``ids`` whose box a person placed, refined or accepted, in order: every engine keeps them as
+    anchors (their boxes stay in the document) unless the person clears them."""
+    return [f for f in ids if f in annotation.frames and kept_by_a_person(annotation.frames[f])]

@@ -239,3 +239,19 @@ def test_the_same_poses_for_any_worker_count(scene):
         pipeline.MIN_FRAMES_FOR_WORKERS = floor
     for frame_id in ids:
         np.testing.assert_array_equal(one.frames[frame_id].matrix, two.frames[frame_id].matrix)
+
+
+@pytest.mark.parametrize("engine", ["graph", "chains"])
+def test_refined_and_accepted_boxes_stay_anchors_in_both_engines(scene, engine):
+    root, truth, annotation = scene
+    doc = annotation.copy()
+    refined = retract(truth["0000007"], np.array([0.01, 0.0, 0.0, 0.001, 0.0, 0.0]))
+    accepted = retract(truth["0000016"], np.array([0.0, 0.01, 0.0, 0.0, 0.001, 0.0]))
+    doc.frames["0000007"] = FramePose.from_matrix(refined, "refined")
+    doc.frames["0000016"] = FramePose.from_matrix(accepted, "tracked", {"reviewed": "accepted"})
+    tracked = tracking_engine(engine).track_sequence(open_sequence(root), doc)
+    assert tracked.frames["0000007"].source == "refined"
+    np.testing.assert_allclose(tracked.frames["0000007"].matrix, refined, atol=1e-9)
+    assert tracked.frames["0000016"].extra.get("reviewed") == "accepted"
+    np.testing.assert_allclose(tracked.frames["0000016"].matrix, accepted, atol=1e-9)
+    assert tracked.frames["0000005"].source == "tracked"

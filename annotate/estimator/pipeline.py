@@ -24,6 +24,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotate.engines import anchor_frames
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
@@ -54,14 +55,6 @@ ROUND_BLOCKS = 4
 MAX_AXIS_CONDITIONING = 0.15
 #: ... and within this many degrees of the anchors' y (further: the fit found another axis, not the labelled one)
 MAX_UPRIGHT_DEG = 10.0
-
-
-def anchor_frames(annotation: Annotation, ids: list[str]) -> list[str]:
-    """The frames of ``ids`` whose box a person placed (manual), refined, or accepted in review, in order."""
-    def kept(pose: FramePose) -> bool:
-        return pose.source in ("manual", "refined") or pose.extra.get("reviewed") == "accepted"
-
-    return [f for f in ids if f in annotation.frames and kept(annotation.frames[f])]
 
 
 def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:

@@ -1,7 +1,7 @@
 """The tracking engine: from a few hand-placed boxes to a pose in every frame (and one-frame refinement).
 
 ``track_sequence``:
-1. anchors: the manual frames (in the chosen range);
+1. anchors: the frames whose box a person placed, refined or accepted (in the chosen range; annotate.engines.anchor_frames);
 2. chains: from every anchor forward and backward to the neighbouring anchors (or the ends),
    each frame registered to the chain's growing model (propagate.py);
 3. reconcile: between two anchors, the two chains are blended, or joined at the frame where they
@@ -93,6 +93,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from evaluate.geometry import untransform
+from annotate.engines import anchor_frames, kept_by_a_person
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
@@ -193,9 +194,10 @@ def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:
 
 
 def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
-    manual = [f for f in ids if f in annotation.frames and annotation.frames[f].source == "manual"]
-    if manual:
-        return manual
+    """The boxes a person placed, refined or accepted (annotate.engines.anchor_frames), else every posed frame."""
+    kept = anchor_frames(annotation, ids)
+    if kept:
+        return kept
     return [f for f in ids if f in annotation.frames]
 
 
@@ -678,14 +680,14 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             figures["manual_correction_deg"] = deg
             figures["manual_correction_m"] = metres
         figures = document_figures(figures, config)
-        if frame_id in placed and annotation.frames[frame_id].source == "manual":
+        if frame_id in placed and kept_by_a_person(annotation.frames[frame_id]):
             old = annotation.frames[frame_id]
             extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason", "flag_spin_only")}
             extra.update(figures)
             if config.update_manual:
-                new = FramePose.from_matrix(poses[frame_id], "manual", extra)
+                new = FramePose.from_matrix(poses[frame_id], old.source, extra)
             else:
-                new = FramePose(old.position.copy(), old.orientation.copy(), "manual", extra)
+                new = FramePose(old.position.copy(), old.orientation.copy(), old.source, extra)
             out.frames[frame_id] = new
         else:
             out.frames[frame_id] = FramePose.from_matrix(poses[frame_id], "tracked", figures)
