@@ -1,8 +1,9 @@
 """The tracking panel: refine this frame, track a range or everything (in the background, with progress).
 Reviewing the flagged frames is the review panel's (app_review).
 
-The engine is :mod:`annotate.tracking` (issue 5); without it the panel says so and the rest of
-the tool keeps working.
+A refine that fails leaves the box as it was and says why (app_refine). A run keeps the boxes a person placed,
+refined or accepted, says which before it runs, and lists the frames it moved after (app_anchors). The engine is
+annotate.engines' choice; without it the panel says so and the rest of the tool keeps working.
 """
 
 from __future__ import annotations
@@ -11,15 +12,16 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
-from sequences.annotation import FramePose
+import numpy as np
 
+from sequences.annotation import Annotation, FramePose
+
+from .app_anchors import anchors, changes_markdown, engine_view, keep_markdown, pose_changes, restore_anchors
+from .app_refine import engine_config, judge_refine
 from .app_review import Flagged, is_flagged
 
 if TYPE_CHECKING:
     from .app import App
-
-#: Posed frames (twice the nearest used) that the interactive refine builds its model from.
-REFINE_MODEL_FRAMES = 6
 
 
 def tracking_engine():
@@ -53,18 +55,42 @@ class TrackingPanel:
             self.range_to = gui.add_number("Track to frame", initial_value=max(n, 1), min=1, max=max(n, 1), step=1, hint=f"last frame of the range (up to {n})")
             self.track_range = gui.add_button("Track range")
             self.track_all = gui.add_button("Track all frames")
+            self.keeps = gui.add_markdown("")  # what a run will keep, before it runs
             self.progress = gui.add_progress_bar(0.0, animated=False)
             self.info = gui.add_markdown("")
+            self.changes = gui.add_markdown("")  # what the last run changed
         self.refine.on_click(lambda _: self.refine_current())
         self.track_range.on_click(lambda _: self.start_tracking(int(self.range_from.value) - 1, int(self.range_to.value) - 1))
         self.track_all.on_click(lambda _: self.start_tracking(0, n - 1))
+        self.range_from.on_update(lambda _: self.show_keeps())
+        self.range_to.on_update(lambda _: self.show_keeps())
         app.add_command("Refine this frame", "R", self.refine_current, description="register the box to the points and the model of the other frames")
         if tracking_engine() is None:
             self.info.content = "Tracking engine (annotate.tracking) is not installed: refine and track are unavailable."
 
     # --- shown state ---------------------------------------------------------------------
+    def range_ids(self, first: int | None = None, last: int | None = None) -> list[str]:
+        """The frame ids of a run from index ``first`` to ``last`` (default: the range fields), in order."""
+        n = len(self.app.sequence)
+        first = int(self.range_from.value) - 1 if first is None else first
+        last = int(self.range_to.value) - 1 if last is None else last
+        first, last = sorted((int(np.clip(first, 0, n - 1)), int(np.clip(last, 0, n - 1))))
+        return self.app.sequence.ids[first : last + 1]
+
+    def show_keeps(self) -> None:
+        """Say what a run will keep: over all frames, and over the range fields' range where that differs."""
+        state, ids = self.app.state, self.app.sequence.ids
+        with state.lock:
+            document = state.annotation
+            text = keep_markdown(document, ids, ids)
+            chosen = self.range_ids()
+            if len(chosen) != len(ids):
+                text = f"Track all frames: {text}\n\nTrack range: {keep_markdown(document, chosen, ids)}"
+        self.keeps.content = text
+
     def sync(self, pose: FramePose, own: bool, review: list[Flagged], index: int) -> None:
         """Say what the current frame's pose is, and why it is flagged (in words, with its rank in the review list)."""
+        self.show_keeps()
         if self._running:
             return
         if not own:
@@ -83,14 +109,9 @@ class TrackingPanel:
         return self.worker is not None and self.worker.is_alive()
 
     # --- actions -------------------------------------------------------------------------
-    @staticmethod
-    def refine_config(engine):
-        """Interactive refine: a model from the few nearest posed frames only (each is read from disk per call)."""
-        config_class = getattr(engine, "TrackingConfig", None)
-        return None if config_class is None else config_class(max_global_frames=REFINE_MODEL_FRAMES)
-
     def refine_current(self) -> None:
-        """Refine the current frame's box (starting from the box shown) and store it as ``refined``."""
+        """Refine the current frame's box (starting from the box shown) and store it as ``refined``; where the refine
+        fails (app_refine.judge_refine) the box stays as it was and the page says why."""
         app = self.app
         engine = tracking_engine()
         if engine is None:
@@ -101,19 +122,35 @@ class TrackingPanel:
             frame_id = state.frame_id
             pose, own = state.pose()
             document = state.annotation.copy()
+        if not any(f != frame_id for f in document.frames):
+            self.say_refine("Refine left the box as it was: it fits the box to the object the other posed frames show, "
+                            "and this is the only one. Place a box in another frame (or track), then refine.")
+            return
         if not own:
             document.frames[frame_id] = FramePose(pose.position.copy(), pose.orientation.copy(), "manual")
+        config = engine_config(engine)
         start = time.perf_counter()
         try:
-            result = engine.refine_frame(app.sequence, document, frame_id, self.refine_config(engine))
+            result = engine.refine_frame(app.sequence, document, frame_id, config)
         except Exception as error:  # a failed registration must not take the page down
-            app.say(f"Refine failed: {error}")
+            self.say_refine(f"Refine left the box as it was: it failed ({error}).")
             return
         self.last_refine_s = time.perf_counter() - start
         if state.frame_id != frame_id:
             return  # the annotator moved on; a stale result must not land on another frame
+        verdict = judge_refine(result, config)
+        number = f"frame {state.frame + 1}"
+        if not verdict.ok:
+            self.say_refine(f"Refine left the box of {number} as it was: {verdict.reason}.")
+            return
         app.commit_box(result.position, result.orientation, source=result.source or "refined", extra=result.extra)
-        app.say(f"Refined frame {state.frame + 1} (id {frame_id}) in {self.last_refine_s * 1000:.0f} ms.")
+        flagged = f" It is flagged: {verdict.reason}." if verdict.reason else ""
+        app.say(f"Refined {number} (id {frame_id}) in {self.last_refine_s * 1000:.0f} ms.{flagged}")
+
+    def say_refine(self, text: str) -> None:
+        """A refine's outcome on the page, at the top and in this panel (the box did not change: no redraw clears it)."""
+        self.app.say(text)
+        self.info.content = text
 
     def start_tracking(self, first: int, last: int, wait: bool = False) -> bool:
         """Track frames ``first``..``last`` (indices) in a worker thread; the result is one undoable change."""
@@ -125,21 +162,27 @@ class TrackingPanel:
         if self.busy:
             app.say("Tracking is already running.")
             return False
-        first, last = sorted((max(first, 0), min(last, len(app.sequence) - 1)))
-        ids = app.sequence.ids[first : last + 1]
-        document = app.state.annotation.copy()
+        ids = self.range_ids(first, last)
+        with app.state.lock:
+            document = app.state.annotation.copy()
+        kept = anchors(document, ids)
+        if not kept:
+            app.say("Tracking needs a box a person placed, refined or accepted in the range: place one first.")
+            return False
         self.progress.value = 0.0
         self._running = True
-        self.worker = threading.Thread(target=self._track, args=(engine, document, ids), name="tracking", daemon=True)
+        self.worker = threading.Thread(target=self._track, args=(engine, document, ids, kept), name="tracking", daemon=True)
         self.worker.start()
         if wait:
             self.worker.join()
         return True
 
-    def _track(self, engine, document, ids: list[str]) -> None:
+    def _track(self, engine, document: Annotation, ids: list[str], kept: list[str]) -> None:
+        """The run: the engine sees the anchors as placed boxes and gives them back as they were (app_anchors); the
+        frames an annotator changed while it ran keep the annotator's boxes."""
         app = self.app
         start = time.perf_counter()
-        self.info.content = f"Tracking {len(ids)} frames..."
+        self.info.content = f"Tracking {len(ids)} frames from {len(kept)} kept boxes..."
         for button in (self.track_all, self.track_range, self.refine):
             button.disabled = True
 
@@ -147,7 +190,8 @@ class TrackingPanel:
             self.progress.value = 100.0 * done / max(total, 1)
 
         try:
-            result = engine.track_sequence(app.sequence, document, frames=ids, progress=progress)
+            result = engine.track_sequence(app.sequence, engine_view(document, kept), frames=ids, progress=progress)
+            result = restore_anchors(result, document, kept)
         except Exception as error:
             self._running = False
             app.say(f"Tracking failed: {error}")
@@ -157,19 +201,37 @@ class TrackingPanel:
             for button in (self.track_all, self.track_range, self.refine):
                 button.disabled = False
         self._running = False
+        taken: list[str] = []
 
-        def change(doc) -> None:
-            # take the tracked frames; edits made meanwhile to frames outside the range are kept
+        def change(doc: Annotation) -> None:
+            # the tracked frames, but not those an annotator changed meanwhile (nor, outside the range, any frame)
+            taken.clear()
             for frame_id in ids:
-                if frame_id in result.frames:
+                if frame_id in result.frames and _same(doc.frames.get(frame_id), document.frames.get(frame_id)):
                     doc.frames[frame_id] = result.frames[frame_id]
+                    taken.append(frame_id)
 
-        flagged = sum(1 for f in ids if f in result.frames and is_flagged(result.frames[f]))
-        summary = f"Tracked {len(ids)} frames in {time.perf_counter() - start:.1f} s; {flagged} flagged for review."
-        self.info.content = summary  # the progress line goes; the redraw of the edit then shows the frame's pose
+        all_ids = app.sequence.ids
         app.state.edit(change)
+        with app.state.lock:
+            after = app.state.annotation.copy()
+        changed, new = pose_changes(document, after, taken, all_ids)
+        flagged = sum(1 for f in taken if is_flagged(after.frames[f]))
+        skipped = len(ids) - len(taken) - sum(1 for f in ids if f not in result.frames)
+        kept_note = f" Kept as they were the {len(kept)} box{'es' if len(kept) != 1 else ''} placed, refined or accepted."
+        edited = f" {skipped} frames changed while it ran keep your boxes." if skipped else ""
+        summary = f"Tracked {len(ids)} frames in {time.perf_counter() - start:.1f} s; {flagged} flagged for review.{kept_note}{edited}"
+        self.changes.content = "Last run: " + changes_markdown(changed, new)
+        self.info.content = summary
         self.progress.value = 100.0
         app.say(summary + (" The Review list holds them, worst first (F: next)." if flagged else ""))
 
     def close(self) -> None:
         pass
+
+
+def _same(a: FramePose | None, b: FramePose | None) -> bool:
+    """Whether two poses of a frame are the same box (both absent, or equal pose and source)."""
+    if a is None or b is None:
+        return a is b
+    return a.source == b.source and np.array_equal(a.position, b.position) and np.array_equal(a.orientation, b.orientation)

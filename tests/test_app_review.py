@@ -105,19 +105,20 @@ def test_the_page_leads_through_the_review(app):
 
 def test_after_a_run_the_tracking_panel_shows_its_result_not_its_progress(app, monkeypatch):
     ids = app.sequence.ids
-    app.commit_box([0.0, 0.0, 0.7], [0, 0, 0, 1])
+    app.state.set_frame(1)
+    app.commit_box([0.0, 0.0, 0.7], [0, 0, 0, 1])  # a box in the range: the run's anchor (kept, with the engine's figures)
     tracked = _flagged_document(ids)
     engine = SimpleNamespace(track_sequence=lambda sequence, document, frames, progress: tracked)
     monkeypatch.setattr(app_tracking, "tracking_engine", lambda: engine)
-    app.tracking.range_from.value, app.tracking.range_to.value = 2, 3  # frames counted from 1
+    app.tracking.range_from.value, app.tracking.range_to.value = 2, 4  # frames counted from 1
     calls = []
     original = app.tracking.start_tracking
     monkeypatch.setattr(app.tracking, "start_tracking", lambda first, last, wait=False: calls.append((first, last)) or original(first, last, wait=True))
     app.tracking.track_range.value = True
-    assert calls == [(1, 2)]  # indices of frames 2 and 3
+    assert calls == [(1, 3)]  # indices of frames 2 to 4
     assert "Tracking" not in app.tracking.info.content
-    assert "Tracked 2 frames" in app.message.content and "2 flagged" in app.message.content
-    assert set(load_annotation(app.state.path).frames) == {ids[0], ids[1], ids[2]}
+    assert "Tracked 3 frames" in app.message.content and "3 flagged" in app.message.content  # the engine's flag on frame 2 stays
+    assert set(load_annotation(app.state.path).frames) == {ids[1], ids[2], ids[3]}
 
 
 def test_the_guide_lists_the_workflow_and_every_hotkey_and_buttons_carry_their_keys(app):
