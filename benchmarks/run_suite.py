@@ -1,7 +1,7 @@
 """Run the benchmark suite (benchmarks/suite.yaml) on one split and print and write its tables.
 
     .venv/bin/python benchmarks/run_suite.py --split dev|heldout [--quick] [--only NAME ...] [--settings boxes4 boxes3]
-        [--data DIR] [--out DIR] [--shared DIR] [--workers N]
+        [--data DIR] [--out DIR] [--shared DIR] [--workers N] [--surface carving|tsdf]
 
 Generates each sequence once into DIR (default ``$REDWOOD_GT_CACHE/suite``, else ``~/.cache/redwood-gt/suite``),
 then per sequence: reconstructs from the true poses; and per setting places its boxes (4 off by up to 3 deg / 5 mm /
@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from sequences.errors import run_cli  # noqa: E402
 from annotate.engines import ENGINES  # noqa: E402
+from reconstruct.pipeline import SURFACES  # noqa: E402
 from sequences.sample import cache_dir  # noqa: E402
 from suite.run import category_table, run_sequence, sequence_table  # noqa: E402
 from suite.spec import SHARED, SPLITS, SUITE, Setting, build, load_suite  # noqa: E402
@@ -53,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shared", default=str(SHARED), help="../shared/data (the real meshes and REDWOOD75's orientations)")
     parser.add_argument("--workers", type=int, help="tracking worker processes (default: the tracker's; the chains engine)")
     parser.add_argument("--engine", choices=ENGINES, help="tracking engine (default: annotate.engines' default)")
+    parser.add_argument("--surface", choices=SURFACES, help="the reconstruction's surface (default: reconstruct.pipeline's default)")
     parser.add_argument("--tables", metavar="RESULTS", help="print the tables of an earlier run's results.json (runs nothing)")
     args = parser.parse_args(argv)
     if args.tables:
@@ -79,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         root = build(entry, frames, Path(args.data), Path(args.shared))
         built = time.perf_counter() - t0
-        new = run_sequence(root, settings, entry.name, entry.seed, args.workers, args.engine)
+        new = run_sequence(root, settings, entry.name, entry.seed, args.workers, args.engine, args.surface)
         for row in new:
             row.update(split=entry.split, shape=entry.shape, coverage=entry.coverage, texture=entry.texture, sensor=entry.sensor)
         rows.extend(new)

@@ -1,6 +1,7 @@
 """``reconstruct-sequence``: carve, mesh, smooth, tight box, masks and export (REDWOOD75, BOP or NOCS).
 
     reconstruct-sequence SEQ [SEQ ...] [--annotation FILE] --out DIR [--voxel-size M] [--format redwood75|bop|nocs]
+        [--surface carving|tsdf]
 
 Each sequence is reconstructed and exported in turn (see :mod:`reconstruct.export`, :mod:`reconstruct.export_bop`
 and :mod:`reconstruct.export_nocs` for what lands in DIR; one DIR holds one format). A sequence that fails writes
@@ -21,6 +22,7 @@ from sequences.errors import EXIT_BAD_INPUT, InputError, run_cli
 from sequences.reader import open_sequence
 
 from .export_index import FORMATS, check_folder_format
+from .pipeline import SURFACE, SURFACES
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,13 +35,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--format", choices=FORMATS, default=FORMATS[0], help="export format (default redwood75: annotations.json and meshes; "
                         "bop: bop_toolkit's scene layout, millimetres; nocs: REAL275's layout with NOCS maps and gts pickles)")
     parser.add_argument("--no-masks", action="store_true", help="do not render and write the per-frame masks (redwood75 and bop; NOCS's layout needs them)")
+    parser.add_argument("--surface", choices=SURFACES, default=SURFACE, help=f"the surface meshed (default {SURFACE}): carving, the carved "
+                        "occupancy; tsdf, the depth fused where frames measured the surface and the carved hull elsewhere")
     parser.add_argument("--include-flagged", action="store_true",
                         help="also carve with frames flagged for review (by default they are posed and exported but do not carve)")
     return parser
 
 
 def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_size: float, smoothing: str, masks: bool, bar: tqdm | None = None,
-                    include_flagged: bool = False, fmt: str = FORMATS[0]) -> Path:
+                    include_flagged: bool = False, fmt: str = FORMATS[0], surface: str = SURFACE) -> Path:
     """Reconstruct and export one sequence in format ``fmt``; returns the annotations.json path (REDWOOD75's file,
     or the BOP or NOCS export's index)."""
     from .pipeline import reconstruct_sequence
@@ -57,7 +61,8 @@ def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_siz
         if bar is not None:
             bar.set_postfix_str(f"{sequence.name}: {stage} {done}/{total}", refresh=False)
 
-    reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing, include_flagged=include_flagged)
+    reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing, include_flagged=include_flagged,
+                                          surface=surface)
     progress("export", 0, 1)
     if fmt == "bop":
         from .export_bop import export_bop
@@ -94,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     bar = tqdm(args.sequences, desc="reconstruct", unit="seq", file=sys.stderr, disable=None)
     for root in bar:
         try:
-            reconstruct_one(root, args.annotation, out, args.voxel_size, args.smoothing, not args.no_masks, bar, args.include_flagged, args.format)
+            reconstruct_one(root, args.annotation, out, args.voxel_size, args.smoothing, not args.no_masks, bar, args.include_flagged, args.format,
+                            args.surface)
         except InputError as error:
             failed += 1
             tqdm.write(f"error: {error}", file=sys.stderr)

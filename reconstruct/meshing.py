@@ -4,6 +4,8 @@ Steps: keep the largest 6-connected component of the occupied voxels and fill it
 holes; marching cubes (scikit-image) on the padded grid, so the surface is closed; outward
 winding (positive volume); smoothing that does not shrink the object (Taubin by default,
 REDWOOD75's Laplacian as an option); keep the largest connected piece of the mesh.
+:func:`field_mesh` does the same from marching cubes on for a signed field (the fused surface
+joined with the hull, :mod:`reconstruct.tsdf`).
 """
 
 from __future__ import annotations
@@ -63,8 +65,27 @@ def occupancy_mesh(occupied: np.ndarray, grid: VoxelGrid, smoothing: str = "taub
     field = np.pad(solid.astype(np.float32), 2)  # zero border: the surface closes inside the grid
     if blur_sigma > 0:
         field = ndimage.gaussian_filter(field, blur_sigma, mode="constant")
-    vertices, faces, _, _ = marching_cubes(field, level=0.5, spacing=(grid.voxel_size,) * 3)
-    vertices = vertices + (np.asarray(grid.origin) - 2 * grid.voxel_size)
+    return _level_mesh(field, 0.5, grid, 2, smoothing, iterations)
+
+
+def field_mesh(field: np.ndarray, grid: VoxelGrid, smoothing: str = "taubin", iterations: int = 10) -> trimesh.Trimesh:
+    """Mesh the zero level of a signed field (nx, ny, nz) on ``grid``, positive outside (object frame, metres): padded
+    with the field's largest value, so the surface closes inside the grid; then as :func:`occupancy_mesh` (marching
+    cubes on the negated field, larger inside as an occupancy: the same winding and vertex order before the mesh is
+    turned outward, which readers that order vertices by the faces keep)."""
+    if smoothing not in SMOOTHING:
+        raise ValueError(f"smoothing must be one of {SMOOTHING}, got {smoothing!r}")
+    if not (field < 0).any():
+        raise ValueError("no voxel inside the field's zero level to mesh")
+    inside = np.pad(-np.asarray(field, dtype=np.float32), 2, constant_values=-max(float(field.max()), 1.0))
+    return _level_mesh(inside, 0.0, grid, 2, smoothing, iterations)
+
+
+def _level_mesh(field: np.ndarray, level: float, grid: VoxelGrid, pad: int, smoothing: str, iterations: int) -> trimesh.Trimesh:
+    """Marching cubes of ``field`` (``grid`` padded by ``pad`` voxels a side) at ``level``, the largest piece, outward
+    winding, smoothed."""
+    vertices, faces, _, _ = marching_cubes(field, level=level, spacing=(grid.voxel_size,) * 3)
+    vertices = vertices + (np.asarray(grid.origin) - pad * grid.voxel_size)
     mesh = trimesh.Trimesh(vertices, faces, process=True)
     mesh = largest_piece(mesh)
     if signed_volume(mesh) < 0:  # outward winding: a closed mesh with outward normals has positive volume

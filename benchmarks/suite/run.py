@@ -76,13 +76,14 @@ def goal_misses(row: dict) -> list[str]:
     return missed_goals(row, RECONSTRUCTION_GOALS + (TRACKING_GOALS if row["setting"] != "truth" else ()))
 
 
-def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Truth, surface) -> dict:
-    from reconstruct.pipeline import reconstruct_sequence
+def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Truth, surface, mesh_surface: str | None = None) -> dict:
+    """Scores of ``reconstruct_sequence`` on ``annotation``; ``mesh_surface``: its ``surface`` option (None: its default)."""
+    from reconstruct.pipeline import SURFACE, reconstruct_sequence
     from sequences.errors import InputError
 
     start = time.perf_counter()
     try:
-        recon = reconstruct_sequence(sequence, annotation, voxel_size=0.002)
+        recon = reconstruct_sequence(sequence, annotation, voxel_size=0.002, surface=mesh_surface or SURFACE)
     except InputError as error:  # the reconstruction is one of the parts measured: a failure is a figure
         return {"reconstruct_error": str(error)}
     seconds = time.perf_counter() - start
@@ -98,12 +99,15 @@ def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Tr
         # the largest error of a box face a measurement bounds (all six when the reconstruction does not say)
         "measured_face_error_mm": max((abs(v) for f, v in shape["face_errors_mm"].items() if measured is None or f in measured), default=None),
         "reconstruct_s": seconds,
+        "surface": mesh_surface or SURFACE,
     }
 
 
-def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, workers: int | None = None, engine: str | None = None) -> list[dict]:
+def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, workers: int | None = None, engine: str | None = None,
+                 mesh_surface: str | None = None) -> list[dict]:
     """Rows of figures for one sequence: ``truth`` and each of ``settings`` (its boxes drawn from ``seed``), tracked by
-    ``engine`` (annotate.engines; default: the default engine)."""
+    ``engine`` (annotate.engines; default: the default engine), reconstructed with ``mesh_surface`` (reconstruct.pipeline's
+    SURFACES; default: its default)."""
     from annotate.engines import engine_name, tracking_engine
 
     engine = engine_name(engine)
@@ -113,7 +117,7 @@ def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, work
     surface = true_surface(truth.mesh, measured_frames(sequence, truth))
     base = {"sequence": name, "category": truth.category, "symmetry": truth.symmetry, "frames": len(sequence),
             "observed_share_truth": surface.observed_share}
-    rows = [{**base, "setting": "truth", **_reconstruction_scores(sequence, true_pose_annotation(truth, name), truth, surface)}]
+    rows = [{**base, "setting": "truth", **_reconstruction_scores(sequence, true_pose_annotation(truth, name), truth, surface, mesh_surface)}]
     for setting in settings:
         placed = truth_annotation(truth, manual_frames(sequence.ids, setting.boxes), setting.degrees, setting.metres, setting.extents, seed=seed)
         config = None
@@ -128,7 +132,7 @@ def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, work
         flagged = {f: bool(p.extra.get("flagged")) for f, p in tracked.frames.items()}
         row = {**base, "setting": setting.name, "engine": engine, **pose_scores(poses, flagged, truth.poses, truth.symmetry),
                "ms_per_frame": 1000 * wall / len(sequence), "cpu_ms_per_frame": 1000 * cpu / len(sequence)}
-        row.update(_reconstruction_scores(sequence, tracked, truth, surface))
+        row.update(_reconstruction_scores(sequence, tracked, truth, surface, mesh_surface))
         rows.append(row)
     for row in rows:
         row["goals_missed"] = goal_misses(row)
