@@ -1,11 +1,14 @@
 """``evaluate``: evaluate pose-and-shape methods against REDWOOD75-format ground truth.
 
     evaluate --dataset DIR [--frames ROOT] --method SPEC [--method SPEC ...] --out OUT [--config FILE]
+        [--workers N | --cluster ADDRESS] [--redo] [--json]
 
 writes ``OUT/results.json``, ``OUT/table.md``, ``OUT/table.csv``, ``OUT/precision_curves.png``,
 ``OUT/curves.json``, ``OUT/errors.csv``, and NOCS-style mAP's ``OUT/nocs_map.csv`` and
 ``OUT/nocs_map_curves.png`` (see :mod:`evaluate.report`); options on the command line override the config file
-(:mod:`evaluate.config`).
+(:mod:`evaluate.config`). Methods run here on the frames predict in chunks of samples on N local processes or a
+Dask cluster (:mod:`evaluate.units`; ``--workers 1``: in this process), their predictions kept in ``OUT/.batch``
+for a rerun; the results are those of one loop. ``--json`` prints the report on stdout.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ EXAMPLES = """examples:
   evaluate --dataset gt/ --frames sequences/ --method box --method template --out results/
   evaluate --dataset gt/ --frames sequences/ --method sgpa=cpas_toolbox.cpas_methods.sgpa:SGPA --out results/
   evaluate --config evaluate.yaml --out results/   (the YAML keys: see evaluate/config.py)
+  evaluate --dataset gt/ --frames sequences/ --method template --out results/ --cluster tcp://HOST:8786 --json
 
 outputs: OUT/results.json, OUT/table.md, OUT/table.csv, OUT/precision_curves.png, OUT/curves.json, OUT/errors.csv,
          OUT/nocs_map.csv, OUT/nocs_map_curves.png (NOCS-style mAP)"""
@@ -42,13 +46,41 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--surface-samples", type=int, help="points sampled per surface for chamfer distance and F-score (default 10000)")
     parser.add_argument("--seed", type=int, help="seed of the surface sampling (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--workers", type=int, metavar="N", help="methods run here: chunks of samples at once on local processes (default: the cores available)")
+    parser.add_argument("--cluster", metavar="ADDRESS", help="methods run here: run the chunks on the Dask cluster whose scheduler is at ADDRESS "
+                        "(tcp://HOST:8786; the workers must see the dataset, the frames and OUT at the same paths)")
+    parser.add_argument("--redo", action="store_true", help="also predict the chunks an earlier run finished (by default their predictions in OUT/.batch are reused)")
+    parser.add_argument("--json", action="store_true", help="print the report (results.json's content, the outputs, notes and units) as JSON on stdout, and nothing else there")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    from evaluate.config import build_config, read_config_file
+    from batch.report import json_stdout, write_json
 
     args = build_parser().parse_args(argv)
+    with json_stdout(args.json) as stdout:
+        try:
+            return _main(args, stdout)
+        except InputError as error:
+            if args.json:
+                write_json({"command": "evaluate", "error": str(error)}, stdout)
+            raise
+
+
+def _main(args, stdout) -> int:
+    import json
+    import time
+
+    from batch.local import available_cores
+    from batch.report import write_json
+    from evaluate.config import build_config, read_config_file
+    from evaluate.units import batch_predictor
+
+    start = time.perf_counter()
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers", f"must be at least 1, got {args.workers}")
+    if args.workers is not None and args.cluster:
+        raise InputError("--workers", "--workers and --cluster exclude each other: a cluster's workers are its own")
     if args.seed is not None and args.seed < 0:
         raise InputError("--seed", "must be a non-negative integer")
     file_values = read_config_file(args.config) if args.config else {}
@@ -58,7 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     from evaluate.runner import evaluate_dataset
 
     _check_out(config.out)  # before a long run, not after it
-    evaluation = evaluate_dataset(config, progress=not args.quiet)
+    units: dict = {}
+    predict = batch_predictor(config, args.workers or available_cores(), args.cluster, args.redo, args.quiet, units)
+    evaluation = evaluate_dataset(config, progress=not args.quiet, predict=predict)
     paths = write_outputs(config.out, evaluation.dataset.name, evaluation.results, evaluation.dataset.categories, evaluation.notes)
     for note in evaluation.notes:
         print(f"note: {note}", file=sys.stderr)
@@ -69,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
             mean, _ = nocs_values(result.nocs)
             print(f"{result.name} NOCS mAP: " + ", ".join(f"{label} {'–' if v != v else f'{100 * v:.1f}%'}" for label, v in zip(nocs_labels(result.nocs), mean)))
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    if args.json:
+        results = json.loads((config.out / "results.json").read_text())
+        write_json({"command": "evaluate", "out": str(config.out), "seconds": round(time.perf_counter() - start, 3), "outputs": {k: str(v) for k, v in paths.items()},
+                    "notes": evaluation.notes, "results": results, "batch": units}, stdout)
     return 0
 
 

@@ -14,6 +14,7 @@ no detection, so its box is missed.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -191,8 +192,25 @@ def curves(errors, grids: dict[str, list[float]], has_mesh: np.ndarray) -> dict[
     return {k: out[k] for k in ("position", "degrees", "iou", "fscore") if k in out}
 
 
-def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluation:
-    """Run and score every method on every sample of the configured dataset."""
+def predict_sample(method: SampleMethod, sample: Sample, inputs: FrameInputs, config: EvaluateConfig) -> tuple[tuple | None, str | None]:
+    """One method's prediction for one sample: ((position, orientation, extents, points, score, category), None),
+    or (None, the reason it failed)."""
+    try:
+        p = method.predict(sample, inputs)
+        points = reconstruction_points(p.reconstruction, config.surface_samples, config.seed) if sample.mesh_path is not None else None
+        return (p.position, p.orientation, p.extents, points, p.score, p.category), None
+    except PredictionFailure as failure:
+        return None, " ".join(str(failure).split())
+    except (Exception, SystemExit) as error:  # a method's own bug or exit is that sample's failure, not the run's end
+        return None, " ".join(f"method raised {error.__class__.__name__}: {error}".split())[:300]
+
+
+def evaluate_dataset(config: EvaluateConfig, progress: bool = True, predict=None) -> Evaluation:
+    """Run and score every method on every sample of the configured dataset.
+
+    ``predict(dataset, methods, predicted, reasons)``, when given, fills ``predicted[name][i]`` and
+    ``reasons[name][i]`` (as :func:`predict_sample` gives them) in place of the loop here (:mod:`evaluate.units`
+    runs them as a batch)."""
     from tqdm import tqdm
 
     dataset = open_dataset(config.dataset, config.frames)
@@ -204,21 +222,17 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
     n = len(dataset)
     predicted: dict[str, list] = {m.name: [None] * n for m in methods}
     reasons: dict[str, list[str | None]] = {m.name: [None] * n for m in methods}
-    bar = tqdm(total=n * len(methods), desc="evaluate", unit="prediction", disable=not progress)
-    for i, sample in enumerate(dataset):
-        inputs = FrameInputs(dataset, sample)
-        for method in methods:
-            bar.set_postfix_str(f"{method.name} {sample.label}", refresh=False)
-            try:
-                p = method.predict(sample, inputs)
-                points = reconstruction_points(p.reconstruction, config.surface_samples, config.seed) if sample.mesh_path is not None else None
-                predicted[method.name][i] = (p.position, p.orientation, p.extents, points, p.score, p.category)
-            except PredictionFailure as failure:
-                reasons[method.name][i] = " ".join(str(failure).split())
-            except (Exception, SystemExit) as error:  # a method's own bug or exit is that sample's failure, not the run's end
-                reasons[method.name][i] = " ".join(f"method raised {error.__class__.__name__}: {error}".split())[:300]
-            bar.update(1)
-    bar.close()
+    if predict is not None:  # the caller runs the methods (evaluate.units: a batch)
+        predict(dataset, methods, predicted, reasons)
+    else:
+        bar = tqdm(total=n * len(methods), desc="evaluate", unit="prediction", disable=not progress)
+        for i, sample in enumerate(dataset):
+            inputs = FrameInputs(dataset, sample)
+            for method in methods:
+                bar.set_postfix_str(f"{method.name} {sample.label}", refresh=False)
+                predicted[method.name][i], reasons[method.name][i] = predict_sample(method, sample, inputs, config)
+                bar.update(1)
+        bar.close()
     shapes = [index.get(s) for s in dataset]
     categories = np.array([s.category for s in dataset])
     has_mesh = np.array([s.mesh_path is not None for s in dataset])
@@ -229,7 +243,7 @@ def evaluate_dataset(config: EvaluateConfig, progress: bool = True) -> Evaluatio
         notes.append(f"{int((~has_mesh).sum())} of {n} samples have no true mesh ({', '.join(missing)}): F-score thresholds count only the other {int(has_mesh.sum())}; their pose and IoU are evaluated.")
     truth = nocs_ground_truth(dataset)
     results = []
-    for method in methods:
+    for method in tqdm(methods, desc="score", unit="method", disable=not progress or len(methods) < 2, file=sys.stderr):
         errors = score_method(dataset, predicted[method.name], shapes, config.fscore_threshold)
         nocs = nocs_map_of_method(truth, predicted[method.name], errors)
         if nocs.ignored:

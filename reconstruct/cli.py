@@ -1,27 +1,30 @@
 """``reconstruct-sequence``: carve, mesh, smooth, tight box, masks and export (REDWOOD75, BOP or NOCS).
 
     reconstruct-sequence SEQ [SEQ ...] [--annotation FILE] --out DIR [--voxel-size M] [--format redwood75|bop|nocs]
-        [--surface carving|tsdf]
+        [--surface carving|tsdf] [--workers N | --cluster ADDRESS] [--redo] [--json]
 
-Each sequence is reconstructed and exported in turn (see :mod:`reconstruct.export`, :mod:`reconstruct.export_bop`
-and :mod:`reconstruct.export_nocs` for what lands in DIR; one DIR holds one format). A sequence that fails writes
-nothing; its error is one line on stderr naming the file and the problem, the others go on, and the exit code
-is 2 if any failed.
+One SEQ is reconstructed and exported here (see :mod:`reconstruct.export`, :mod:`reconstruct.export_bop` and
+:mod:`reconstruct.export_nocs` for what lands in DIR; one DIR holds one format). Several, or any with
+``--cluster``, are a batch (:mod:`reconstruct.units`): one unit per sequence on N local processes or a Dask
+cluster, the sequences finished by an earlier batch skipped, the outputs the same for any worker count. A
+sequence that fails writes nothing; its error is one line on stderr naming the file and the problem, the others
+go on, and the exit code is 2 if any failed. ``--json`` prints the report on stdout.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 from tqdm import tqdm
 
-from sequences.annotation import annotation_path, load_annotation
+from batch.report import json_stdout, write_json
 from sequences.errors import EXIT_BAD_INPUT, InputError, run_cli
-from sequences.reader import open_sequence
 
-from .export_index import FORMATS, check_folder_format
+from . import units
+from .export_index import FORMATS, check_folder_format, read_index
 from .pipeline import SURFACE, SURFACES
 
 
@@ -39,77 +42,145 @@ def build_parser() -> argparse.ArgumentParser:
                         "occupancy; tsdf, the depth fused where frames measured the surface and the carved hull elsewhere")
     parser.add_argument("--include-flagged", action="store_true",
                         help="also carve with frames flagged for review (by default they are posed and exported but do not carve)")
+    batch = parser.add_argument_group("batches (several SEQ, or --cluster)")
+    batch.add_argument("--workers", type=int, default=None, metavar="N", help="sequences at once on local processes (default: the cores available)")
+    batch.add_argument("--cluster", metavar="ADDRESS", help="run the sequences on the Dask cluster whose scheduler is at ADDRESS "
+                       "(tcp://HOST:8786; the workers must see SEQ and DIR at the same paths)")
+    batch.add_argument("--redo", action="store_true", help="also run the sequences an earlier batch finished (by default they are skipped)")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON on stdout (and nothing else there)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
-def reconstruct_one(root: str, annotation_file: str | None, out: Path, voxel_size: float, smoothing: str, masks: bool, bar: tqdm | None = None,
-                    include_flagged: bool = False, fmt: str = FORMATS[0], surface: str = SURFACE) -> Path:
-    """Reconstruct and export one sequence in format ``fmt``; returns the annotations.json path (REDWOOD75's file,
-    or the BOP or NOCS export's index)."""
-    from .pipeline import reconstruct_sequence
+def options_of(args) -> dict:
+    """The options that make a sequence's output (a unit's state records them)."""
+    return {"voxel_size": float(args.voxel_size), "smoothing": args.smoothing, "format": args.format, "masks": not args.no_masks,
+            "include_flagged": bool(args.include_flagged), "surface": args.surface}
 
-    sequence = open_sequence(root)
-    sequence.check()  # every frame decodes and the depth scale is plausible: before any work starts
-    annotation = load_annotation(annotation_path(root, annotation_file), default_sequence=sequence.name)
-    if fmt == "nocs":  # before any work: NOCS's format holds its six categories only
-        from .export_nocs import CLASS_IDS
 
-        if annotation.category not in CLASS_IDS:
-            raise InputError(annotation_path(root, annotation_file), f"category {annotation.category!r} has no NOCS class id (NOCS knows {', '.join(CLASS_IDS)})")
+class StageBar:
+    """One sequence's progress on a terminal: a bar per stage (carve, export, ...) with its counts and time left
+    (none in a log: one sequence's stages are seconds long)."""
 
-    def progress(stage: str, done: int, total: int) -> None:
-        if bar is not None:
-            bar.set_postfix_str(f"{sequence.name}: {stage} {done}/{total}", refresh=False)
+    def __init__(self, name: str, quiet: bool) -> None:
+        from batch.runner import progress_bar
 
-    reconstruction = reconstruct_sequence(sequence, annotation, voxel_size, progress=progress, smoothing=smoothing, include_flagged=include_flagged,
-                                          surface=surface)
-    progress("export", 0, 1)
-    if fmt == "bop":
-        from .export_bop import export_bop
+        self.name, self.stage = name, None
+        self.bar = progress_bar(1, f"{name}: open", "step", quiet, log=False)
 
-        path = export_bop(reconstruction, sequence, out, masks=masks, progress=progress)
-    elif fmt == "nocs":
-        from .export_nocs import export_nocs
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if stage != self.stage:
+            self.stage = stage
+            self.bar.reset(total=max(total, 1))
+            self.bar.set_description_str(f"{self.name}: {stage}", refresh=False)
+        self.bar.update(max(done - self.bar.n, 0))
 
-        path = export_nocs(reconstruction, sequence, out, progress=progress)
-    else:
-        from .export import export_redwood
+    def close(self) -> None:
+        self.bar.close()
 
-        path = export_redwood(reconstruction, sequence, annotation, out, masks=masks)
-    if reconstruction.surface is not None:
-        unmeasured = reconstruction.surface.unmeasured_faces()
-        if unmeasured:  # the box there rests on surface no frame measured: its extent is a guess
-            faces = ", ".join(face for face, _ in unmeasured)
-            tqdm.write(f"warning: {reconstruction.sequence}: the tight box's {faces} face{'s' if len(unmeasured) > 1 else ''} rest on surface "
-                       f"no frame measured; {unmeasured[0][1]}", file=sys.stderr)
-    return path
+
+def reconstruct_one(root: str, annotation_file: str | None, out: Path, options: dict, quiet: bool = False) -> dict:
+    """Reconstruct and export one sequence here, with a progress bar; returns its summary (the index's path in ``index``)."""
+    bar = StageBar(Path(root).name, quiet)
+    try:
+        reconstruction, sequence, annotation, _ = units.reconstruct(root, options, annotation_file, progress=bar)
+        bar("export", 0, 1)
+        path = units.export(reconstruction, sequence, annotation, out, options, progress=bar)
+    finally:
+        bar.close()
+    summary = units.summary_of(reconstruction, path, "")
+    del summary["state"]
+    return summary
+
+
+def _single(args, out: Path, options: dict) -> list[dict]:
+    """One SEQ, here, as before batches: no markers, nothing skipped."""
+    start = time.perf_counter()
+    root = args.sequences[0]
+    try:
+        summary = reconstruct_one(root, args.annotation, out, options, args.quiet)
+    except InputError as error:
+        tqdm.write(f"error: {error}", file=sys.stderr)
+        return [{"unit": root, "status": "failed", "seconds": round(time.perf_counter() - start, 3), "error": str(error)}]
+    except Exception as error:  # say which sequence, in one line
+        line = f"{root}: {error.__class__.__name__}: {' '.join(str(error).split())}"
+        tqdm.write(f"error: {line}", file=sys.stderr)
+        return [{"unit": root, "status": "failed", "seconds": round(time.perf_counter() - start, 3), "error": line}]
+    units.print_warnings(summary)
+    return [{"unit": root, "status": "done", "seconds": round(time.perf_counter() - start, 3), "error": None, **summary}]
+
+
+def _batch(args, out: Path, options: dict) -> tuple[list[dict], str]:
+    """Several SEQ (or --cluster): one unit per sequence (reconstruct.units)."""
+    from batch import Unit, run_batch
+    from batch.local import available_cores
+
+    ordered = args.format != "redwood75"
+    batch_units = []
+    document = args.annotation  # one SEQ only
+    names = [units.sequence_name(root, document) for root in args.sequences]  # None: its document does not load (its unit says why)
+    twice = sorted({n for n in names if n is not None and names.count(n) > 1})
+    if twice:
+        raise InputError(None, f"two SEQ export under the name {twice[0]!r} (their documents' sequence, else their folders'): one would replace the other")
+    for root, name in zip(args.sequences, names):
+        marker = None if name is None else units.marker_path(out, name)
+        state = None if name is None else (lambda root=root, name=name: units.state_now(root, document, out, options, name))
+        if ordered:
+            batch_units.append(Unit(root, units.reconstruct_step, (root, document, options), marker, state, units.export_step, (root, str(out), options)))
+        else:
+            batch_units.append(Unit(root, units.whole_unit, (root, document, str(out), options), marker, state))
+    before = list(read_index(out)) if out.is_dir() else []
+
+    def describe(outcome) -> str:
+        units.print_warnings(outcome.summary)
+        return f"{outcome.summary.get('sequence', outcome.key)}: {outcome.summary.get('frames', '?')} frames reconstructed and exported in {outcome.seconds:.1f} s"
+
+    workers = args.workers or available_cores()
+    batch = run_batch(batch_units, workers=workers, cluster=args.cluster, redo=args.redo, desc="reconstruct", noun="seq", quiet=args.quiet,
+                      preload=units.PRELOAD, describe=describe)
+    if not ordered:
+        names = [o.summary["sequence"] for o in batch.outcomes if o.status in ("done", "skipped") and "sequence" in o.summary]
+        units.order_index(out, before, names)
+    return [o.as_dict() for o in batch.outcomes], batch.engine
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    with json_stdout(args.json) as stdout:
+        try:
+            return _main(args, stdout)
+        except InputError as error:
+            if args.json:
+                write_json({"command": "reconstruct-sequence", "error": str(error)}, stdout)
+            raise
+
+
+def _main(args, stdout) -> int:
     if args.annotation and len(args.sequences) > 1:
         raise InputError(args.annotation, "--annotation names one document: give a single SEQ with it")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(None, f"--workers must be at least 1, got {args.workers}")
+    if args.workers is not None and args.cluster:
+        raise InputError(None, "--workers and --cluster exclude each other: a cluster's workers are its own")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "--out exists and is not a folder")
     if args.format == "nocs" and args.no_masks:
         raise InputError(out, "--no-masks does not apply to --format nocs (NOCS's layout needs its masks)")
     check_folder_format(out, args.format)  # one folder, one format
-    failed = 0
-    bar = tqdm(args.sequences, desc="reconstruct", unit="seq", file=sys.stderr, disable=None)
-    for root in bar:
-        try:
-            reconstruct_one(root, args.annotation, out, args.voxel_size, args.smoothing, not args.no_masks, bar, args.include_flagged, args.format,
-                            args.surface)
-        except InputError as error:
-            failed += 1
-            tqdm.write(f"error: {error}", file=sys.stderr)
-        except Exception as error:  # one bad sequence must not stop the others; say which one
-            failed += 1
-            tqdm.write(f"error: {root}: {error.__class__.__name__}: {' '.join(str(error).split())}", file=sys.stderr)
-    bar.close()
-    done = len(args.sequences) - failed
-    print(f"{done} of {len(args.sequences)} sequence(s) written to {out}", file=sys.stderr)
+    options = options_of(args)
+    start = time.perf_counter()
+    if len(args.sequences) > 1 or args.cluster:
+        report, engine = _batch(args, out, options)
+    else:
+        report, engine = _single(args, out, options), "this process"
+    failed = sum(entry["status"] == "failed" for entry in report)
+    written = sum(entry["status"] == "done" for entry in report)
+    skipped = sum(entry["status"] == "skipped" for entry in report)
+    print(f"{written} of {len(report)} sequence(s) written to {out}" + (f", {skipped} finished before" if skipped else ""), file=sys.stderr)
+    if args.json:
+        write_json({"command": "reconstruct-sequence", "out": str(out), "format": args.format, "options": options, "engine": engine,
+                    "seconds": round(time.perf_counter() - start, 3), "done": written, "skipped": skipped, "failed": failed, "units": report}, stdout)
     return EXIT_BAD_INPUT if failed else 0
 
 

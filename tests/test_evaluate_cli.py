@@ -288,7 +288,9 @@ def test_methods_run_here_on_frames(redwood75_dir, tmp_path):
         expected[10 * i] = depth_mm < 2000
     CALLS.clear()
     out = tmp_path / "out"
-    assert _run(["--dataset", str(small), "--frames", str(frames), "--method", f"rec={__name__}:Recorder", "--method", "box", "--out", str(out), "--surface-samples", "500"]) == 0
+    # --workers 1: the methods run in this process (by default on local processes, whose calls this list would not see)
+    assert _run(["--dataset", str(small), "--frames", str(frames), "--method", f"rec={__name__}:Recorder", "--method", "box", "--out", str(out), "--surface-samples", "500",
+                 "--workers", "1"]) == 0
     assert len(CALLS) == 10
     for color, depth, mask, category, camera in CALLS:
         shade = int(color[0, 0, 0])
