@@ -12,8 +12,9 @@ from dataclasses import dataclass
 WORKFLOW = (
     ("Place", "choose the category (Box): the box takes its typical size. In a frame where the object is clear, click "
               "it in the 3D view (or look through the camera, H, and click it in the colour image): the box lands on it, "
-              "fitted to the depth there. Shift+drag a rectangle around the object to give its outline (its size). "
-              "Then set it right: the arrow keys move it as you see it (PgUp/PgDn away/toward), Shift+arrows turn it, "
+              "fitted to the depth there, and it stays on that surface while you turn it. Shift+drag a rectangle around the object to give its outline (its size). "
+              "Then set it right: Shift+J/L, I/K, O/P move it as you see it (left/right, up/down, toward/away), Alt+ the same "
+              "keys turn it by Turn by, "
               "the gizmo moves and turns it, a face's arrow moves that face. The green face is the top (+y, "
               "labelled), the blue one the front, a mug's handle side (-z). Do this in 2-3 frames spread over the sequence."),
     ("Refine", "R registers the box to the frame's points and the other posed frames: a box that is close snaps on; "
@@ -21,7 +22,7 @@ WORKFLOW = (
     ("Track", "Track all frames gives every frame a pose from your boxes: placed, refined and accepted boxes are its "
               "anchors and stay as they are (the Tracking panel lists them before a run, and what changed after it)."),
     ("Review", "the Review list holds the flagged frames, worst first: F goes to the next; fix the box (then R), or "
-               "accept it (E) when it is right, or reject it (X)."),
+               "accept it (C) when it is right, or reject it (X)."),
     ("Preview", "Model and export > Preview mesh carves the posed frames: do the boxes agree?"),
     ("Export", "Export ground truth writes annotations.json and the mesh (REDWOOD75's format)."),
 )
@@ -57,4 +58,4 @@ def guide_markdown(hotkeys: list[Hotkey]) -> str:
     steps = "\n".join(f"{k}. **{step}**: {text}" for k, (step, text) in enumerate(WORKFLOW, start=1))
     rows = "\n".join(f"| {h.shown} | {h.label} |" for h in hotkeys)
     return (f"{steps}\n\nFrames are numbered from 1. Every change is saved at once; Ctrl+Z undoes it.\n\n"
-            f"| key | action |\n|---|---|\n{rows}\n\nClick the 3D view first, so that the keys do not go to a field.")
+            f"| key | action |\n|---|---|\n{rows}\n\nKeys go to the page while no field has the focus: click a blank part of the panel after typing.")

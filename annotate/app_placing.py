@@ -2,8 +2,9 @@
 
 A click in the 3D view (or, looking through the camera, in the colour image behind the points) is a ray from the
 viewer; the box (the shown one's orientation, the document's extents: the category's typical ones until someone
-sizes it) lands on the surface it hits, fitted to the depth around it (annotate.box_placing). A rectangle dragged
-with Shift is the object's outline as seen: it sets the sides across the view too. Each is one undoable change.
+sizes it) lands on the surface it hits, fitted to the depth around it (annotate.box_placing), and stays on it while it
+is turned (the state's contact; app_moving) until it is moved. A rectangle dragged with Shift is the object's
+outline as seen: it sets the sides across the view too. Each is one undoable change.
 """
 
 from __future__ import annotations
@@ -62,10 +63,12 @@ class PlacingPanel:
             app.say("No depth under the click: click on the object itself.")
             return False
         _, orientation, extents, _ = app.state.box()
+        frame_id = app.state.frame_id
         fit = box_placing.place_on_surface(frame.depth, app.sequence.camera, hit, orientation, extents)
         app.commit_box(fit.position, orientation)
-        app.say(f"Placed the box where you clicked, fitted to {fit.points} points of the surface there: size, turn or move it if "
-                "needed (a click after that fits it again), then Refine (R).")
+        app.state.set_contact(frame_id, hit, fit.position)
+        app.say(f"Placed the box where you clicked, fitted to {fit.points} points of the surface there: turn it if needed (it "
+                "stays on that surface until you move it), then Refine (R).")
         return True
 
     def place_in_outline(self, screen_min, screen_max, camera: tuple) -> bool:

@@ -34,6 +34,9 @@ BELOW = (("fitness", "min_fitness"), ("second_chain_fitness", "min_fitness"), ("
 WORST = 100.0
 #: Flagged frames listed on the page (the rest are counted).
 SHOWN = 8
+#: The key that accepts a pose: C (correct). Not E: viser's viewer moves its camera while W, A, S, D, Q, E or an arrow
+#: key is held, whatever else the key does.
+ACCEPT_KEY = "C"
 #: ``reviewed`` values: the annotator said the pose is right, or changed it by hand after it was flagged.
 REVIEWED = ("accepted", "fixed")
 
@@ -152,13 +155,13 @@ class ReviewPanel:
         with gui.add_folder("Review"):
             self.list = gui.add_markdown("")
             self.next_flagged = gui.add_button(app.key_label("Next flagged frame", "F"))
-            self.accept = gui.add_button(app.key_label("Accept pose", "E"))
+            self.accept = gui.add_button(app.key_label("Accept pose", ACCEPT_KEY))
             self.reject = gui.add_button(app.key_label("Reject pose", "X"))
         self.next_flagged.on_click(lambda _: self.goto_next_flagged())
         self.accept.on_click(lambda _: self.accept_current())
         self.reject.on_click(lambda _: self.reject_current())
         app.add_command("Next flagged frame", "F", self.goto_next_flagged, description="the next frame of the review list, worst first")
-        app.add_command("Accept pose", "E", self.accept_current, description="this frame's pose is right: clear its flag")
+        app.add_command("Accept pose", ACCEPT_KEY, self.accept_current, description="this frame's pose is right: clear its flag")
         app.add_command("Reject pose", "X", self.reject_current, description="remove this frame's pose (place or track it again)")
 
     def sync(self, items: list[Flagged], current: int, reviewed: int) -> None:

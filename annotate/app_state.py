@@ -135,6 +135,9 @@ class AppState:
         self.undo_stack: list[Annotation] = []
         self.redo_stack: list[Annotation] = []
         self.saves = 0
+        #: where the current box rests on a clicked surface: (frame id, the clicked point, the box centre placed there;
+        #: camera frame, m); turns keep such a box on that surface until it is moved (app_placing, app_moving)
+        self.contact: tuple[str, np.ndarray, np.ndarray] | None = None
         self._listeners: list[Listener] = []
         #: called with a one-line message when a change cannot be saved (the page shows it)
         self.on_error: Callable[[str], None] | None = None
@@ -211,6 +214,22 @@ class AppState:
         with self.lock:
             pose, own = self.pose()
             return pose.position.copy(), pose.orientation.copy(), self.annotation.extents.copy(), own
+
+    def set_contact(self, frame_id: str, point, position) -> None:
+        """Remember that the box of ``frame_id`` at ``position`` rests on the clicked surface ``point`` (m)."""
+        with self.lock:
+            self.contact = (frame_id, np.asarray(point, dtype=np.float64).copy(), np.asarray(position, dtype=np.float64).copy())
+
+    def contact_point(self) -> np.ndarray | None:
+        """The clicked point the current frame's box rests on, or None once it moved (or another frame is shown)."""
+        with self.lock:
+            if self.contact is None:
+                return None
+            frame_id, point, position = self.contact
+            pose = self.annotation.frames.get(self.frame_id)
+            if frame_id != self.frame_id or pose is None or not np.allclose(pose.position, position, atol=1e-9):
+                return None
+            return point.copy()
 
     # --- changes ---------------------------------------------------------------------------
     def edit(self, change: Callable[[Annotation], None]) -> None:

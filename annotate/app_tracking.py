@@ -102,7 +102,7 @@ class TrackingPanel:
         rank = next((k for k, item in enumerate(review, start=1) if item.index == index), None)
         where = f" (#{rank} of {len(review)} in the review list)" if rank else ""
         reason = str(pose.extra.get("flag_reason") or "the tracking engine marked it for review")
-        self.info.content = (f"**Flagged**{where}: {reason}. Fix the box (then Refine), or Accept (E) if it is right.")
+        self.info.content = (f"**Flagged**{where}: {reason}. Fix the box (then Refine), or Accept (C) if it is right.")
 
     @property
     def busy(self) -> bool:

@@ -97,8 +97,10 @@ def test_move_panel_steps_as_seen_and_by_typed_degrees(app):
     again = load_annotation(app.state.path).frames["0000001"].orientation
     assert _angle_deg(again, (Rotation.from_quat(turned) * Rotation.from_euler("x", -90, degrees=True)).as_quat()) < 1e-6
     keys = {h.shown for h in app.hotkeys}
-    assert {"←", "→", "↑", "↓", "PgUp", "PgDn", "Shift+←", "Shift+PgUp"} <= keys
-    assert "Shift+←" in app.guide.content
+    assert {"Shift+J", "Shift+L", "Shift+I", "Shift+K", "Shift+O", "Shift+P", "Alt+J", "Alt+P"} <= keys
+    # never a key viser's viewer moves its camera with (W A S D Q E, arrows), alone or with a modifier
+    assert not {h.key for h in app.hotkeys} & {"W", "A", "S", "D", "Q", "E", "arrowleft", "arrowright", "arrowup", "arrowdown"}
+    assert "Alt+J" in app.guide.content
 
 
 # --- a click on the object ---------------------------------------------------------------------------------------------
@@ -202,3 +204,28 @@ def test_the_top_and_front_faces_are_labelled_in_3d_and_on_the_image(app):
     u, v = np.round(uv[0]).astype(int)
     window = np.s_[v - 8 : v + 9, u - 14 : u + 15]
     assert (labelled[window].min(axis=2) > 200).sum() > 10 and (plain[window].min(axis=2) > 200).sum() == 0
+
+
+def test_a_clicked_box_stays_on_the_surface_while_it_turns_until_it_is_moved(app, sequence_root):
+    _, poses = sequence_root
+    position, orientation = poses[0]
+    camera = app.sequence.camera
+    uv, _ = camera.project(position[None])
+    ray = np.array([(uv[0, 0] - camera.cx) / camera.fx, (uv[0, 1] - camera.cy) / camera.fy, 1.0])
+    assert app.placing.place_on_ray(np.zeros(3), ray)
+    placed = load_annotation(app.state.path).frames["0000001"]
+    hit = app.state.contact_point()
+    assert hit is not None
+    # a turn fits the box to the clicked surface again: the centre moves with the box's reach toward the camera
+    app.moving.turn_by.value = 30.0
+    app.moving.turn_camera.value = "y+"
+    turned = load_annotation(app.state.path).frames["0000001"]
+    expected = box_placing.place_on_surface(app.cache.get(0).depth, camera, hit, turned.orientation, app.state.annotation.extents)
+    np.testing.assert_allclose(turned.position, expected.position, atol=1e-9)
+    assert np.linalg.norm(turned.position - placed.position) > 1e-4
+    # once moved, a turn is about the box's centre
+    app.moving.camera_move.value = "right"
+    moved = load_annotation(app.state.path).frames["0000001"].position
+    assert app.state.contact_point() is None
+    app.moving.turn_box.value = "y+"
+    np.testing.assert_allclose(load_annotation(app.state.path).frames["0000001"].position, moved, atol=1e-12)
