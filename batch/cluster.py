@@ -12,11 +12,13 @@ its task's thread waits; so the results do not depend on the engine, and a unit 
 worker unharmed. A worker that dies (its machine lost) has its units rescheduled elsewhere; after Dask's
 ``allowed-failures`` (3) such deaths a unit fails alone (KilledWorker).
 
-Why Dask and not Ray (benchmarks/bench_batch.py, the 2-core machine, the same units): both ran the units at
-the same speed within the noise, Ray's cluster took longer to start, and Dask distributed is a 1 MB pure-Python
-wheel with small pure-Python dependencies where Ray is an 80 MB binary wheel (270 MB installed) that starts a
-store, a GCS server and a raylet per machine: a dependency that makes ``make test`` on a 2-core CI slower and
-more fragile. See the README's "Batches" for the figures.
+Why Dask and not Ray (benchmarks/bench_batch.py --engines separate ray, the 2-core machine, the same units in a
+fresh process on either, 1 and 2 workers, load 1.3-3.6): Ray 22.0 / 15.4 s (reconstruct, 6 sequences),
+45.0 / 26.7 s (track), 26.1 / 17.0 s (evaluate); Dask 21.5 / 14.5, 46.4 / 27.6, 24.4 / 13.6: alike. Dask's cluster
+started in 0.8-1.5 s, Ray's head in 3.1-4.2 s; Dask distributed installs as pure-Python wheels (33 MB with its
+dependencies), Ray as an 80 MB binary wheel (244 MB installed) that starts a GCS server, a raylet and an object
+store per machine: a dependency that makes ``make test`` on a 2-core CI slower and more fragile, for nothing
+measured in return.
 """
 
 from __future__ import annotations

@@ -40,7 +40,8 @@ class Batch:
 
     def as_dict(self) -> dict:
         """The report's batch part (``--json``)."""
-        return {"engine": self.engine, "seconds": round(self.seconds, 3), **self.counts(), "units": [o.as_dict() for o in self.outcomes]}
+        return {"engine": self.engine, "seconds": round(self.seconds, 3), "cpu_seconds": round(sum(o.cpu for o in self.outcomes), 3), **self.counts(),
+                "units": [o.as_dict() for o in self.outcomes]}
 
 
 def progress_bar(total: int, desc: str, noun: str, quiet: bool = False, initial: int = 0, log: bool = True) -> tqdm:
@@ -103,15 +104,17 @@ def run_batch(units: Sequence[Unit], *, workers: int = 1, cluster: str | None = 
         elif not quiet:
             bar.write(describe(outcome) if describe else f"{outcome.key}: done in {outcome.seconds:.1f} s", file=sys.stderr)
 
+    cpu = [0.0] * len(units)
+
     def done(i: int, summary: dict, seconds: float, worker: str | None) -> None:
         try:
             write_marker(units[i], summary)
         except OSError as error:  # the output stands; only a rerun will not know that it is finished
             bar.write(f"warning: {units[i].key}: finished marker not written ({error}); a rerun repeats this unit", file=sys.stderr)
-        end(i, Outcome(units[i].key, "done", seconds, summary, worker=worker))
+        end(i, Outcome(units[i].key, "done", seconds, summary, worker=worker, cpu=cpu[i]))
 
     def failed(i: int, error: str, input_error: bool, seconds: float, worker: str | None) -> None:
-        end(i, Outcome(units[i].key, "failed", seconds, {"input_error": True} if input_error else {}, error, worker))
+        end(i, Outcome(units[i].key, "failed", seconds, {"input_error": True} if input_error else {}, error, worker, cpu[i]))
 
     def advance_commits() -> None:
         """Start the next unit's ordered commit when every unit before it has ended (one commit at a time)."""
@@ -140,6 +143,7 @@ def run_batch(units: Sequence[Unit], *, workers: int = 1, cluster: str | None = 
                     break
                 (step, i, before), result = item
                 seconds, worker = before + float(result.get("seconds", 0.0)), result.get("worker")
+                cpu[i] += float(result.get("cpu", 0.0))
                 if step == "commit":
                     committing = False
                     summary = first_summary.pop(i)

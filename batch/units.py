@@ -63,10 +63,12 @@ class Outcome:
     summary: dict = field(default_factory=dict)
     error: str | None = None
     worker: str | None = None
+    cpu: float = 0.0  # CPU seconds of the unit's steps (all their threads): what the unit costs on an idle machine
 
     def as_dict(self) -> dict:
         entry = {k: v for k, v in self.summary.items() if k not in ("state", "input_error")}
-        entry.update({"unit": self.key, "status": self.status, "seconds": round(self.seconds, 3), "error": self.error, "worker": self.worker})
+        entry.update({"unit": self.key, "status": self.status, "seconds": round(self.seconds, 3), "cpu_seconds": round(self.cpu, 3),
+                      "error": self.error, "worker": self.worker})
         return entry
 
 
@@ -79,8 +81,8 @@ def error_line(error: BaseException) -> str:
 
 def run_step(function: Callable[..., Any], args: tuple) -> dict:
     """Run one step on a worker; never raises (exceptions do not all pickle: InputError's do not), returns
-    ``{"ok", "value" | "error", "input_error", "seconds", "worker"}``."""
-    start = time.perf_counter()
+    ``{"ok", "value" | "error", "input_error", "seconds", "cpu", "worker"}``."""
+    start, cpu = time.perf_counter(), time.process_time()  # the CPU time of this process, all its threads
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
         value = function(*args)
@@ -88,8 +90,8 @@ def run_step(function: Callable[..., Any], args: tuple) -> dict:
         raise
     except BaseException as error:  # a unit's bug, or its SystemExit, is that unit's failure, not the worker's end
         return {"ok": False, "error": error_line(error), "input_error": isinstance(error, InputError),
-                "seconds": time.perf_counter() - start, "worker": worker}
-    return {"ok": True, "value": value, "seconds": time.perf_counter() - start, "worker": worker}
+                "seconds": time.perf_counter() - start, "cpu": time.process_time() - cpu, "worker": worker}
+    return {"ok": True, "value": value, "seconds": time.perf_counter() - start, "cpu": time.process_time() - cpu, "worker": worker}
 
 
 def sha256_text(*parts: Any) -> str:
