@@ -6,6 +6,9 @@ A box of known size and pose (moving a little from frame to frame) in front of a
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -95,3 +98,23 @@ def test_synthetic_sequence_depth_matches_the_box(tmp_path):
     assert abs(hit - position[2]) <= np.linalg.norm(TRUE_EXTENTS) / 2
     assert hit < position[2]  # the visible face is in front of the centre
     assert abs(depth[5, 5] - 1.2) < 0.0015  # the wall, to the millimetre of the PNG
+
+
+@contextmanager
+def served_app(source: Path, tmp_path: Path) -> Iterator["App"]:
+    """The browser app on a copy of the sequence folder ``source`` (copied into ``tmp_path``), served on a free
+    local port; closed, and its server stopped, afterwards."""
+    import viser
+
+    from annotate.app import App
+    from sequences.reader import open_sequence
+
+    root = tmp_path / source.name
+    shutil.copytree(source, root)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = App(server, open_sequence(root))
+    try:
+        yield app
+    finally:
+        app.close()
+        server.stop()

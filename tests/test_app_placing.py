@@ -3,23 +3,19 @@ camera, typed angles and steps, the category's typical size, a labelled top face
 
 from __future__ import annotations
 
-import shutil
 from types import SimpleNamespace
 
 import numpy as np
 import open3d as o3d
 import pytest
-import viser
 from scipy.spatial.transform import Rotation
-from test_app_fixtures import TRUE_EXTENTS, make_sequence
+from test_app_fixtures import served_app, TRUE_EXTENTS, make_sequence
 
 from annotate import box_edits, box_placing
-from annotate.app import App
 from annotate.app_scene import BOX
 from annotate.app_views import TINTED_FACES, draw_box
 from sequences.annotation import CATEGORIES, load_annotation
 from sequences.camera import Camera
-from sequences.reader import open_sequence
 from sequences.typical_extents import TYPICAL_EXTENTS, typical_extents
 
 
@@ -30,13 +26,8 @@ def sequence_root(tmp_path_factory):
 
 @pytest.fixture
 def app(sequence_root, tmp_path):
-    root = tmp_path / "box_seq"
-    shutil.copytree(sequence_root[0], root)
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    app = App(server, open_sequence(root))
-    yield app
-    app.close()
-    server.stop()
+    with served_app(sequence_root[0], tmp_path) as app:
+        yield app
 
 
 def _angle_deg(qa, qb) -> float:

@@ -3,18 +3,14 @@ words, for both tracking engines; one that can moves it onto the object."""
 
 from __future__ import annotations
 
-import shutil
 
 import numpy as np
 import pytest
-import viser
-from test_app_fixtures import TRUE_EXTENTS, make_sequence
+from test_app_fixtures import served_app, TRUE_EXTENTS, make_sequence
 
-from annotate.app import App
 from annotate.app_refine import judge_refine
 from annotate.app_tracking import tracking_engine
 from sequences.annotation import FramePose, load_annotation
-from sequences.reader import open_sequence
 
 ENGINES = ("chains", "graph")
 
@@ -29,14 +25,9 @@ def app(request, sequence_root, tmp_path, monkeypatch):
     monkeypatch.setenv("REDWOOD_GT_ENGINE", request.param)
     if tracking_engine() is None:
         pytest.skip(f"tracking engine {request.param} not importable")
-    root = tmp_path / "box_seq"
-    shutil.copytree(sequence_root[0], root)
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    app = App(server, open_sequence(root))
-    app.state.set_extents(TRUE_EXTENTS)
-    yield app
-    app.close()
-    server.stop()
+    with served_app(sequence_root[0], tmp_path) as app:
+        app.state.set_extents(TRUE_EXTENTS)
+        yield app
 
 
 def _truth_elsewhere(app, poses) -> None:

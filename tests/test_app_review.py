@@ -5,22 +5,18 @@ labels that carry their keys and show their state, frames counted from 1."""
 from __future__ import annotations
 
 import os
-import shutil
 import stat
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import viser
-from test_app_fixtures import TRUE_EXTENTS, make_sequence
+from test_app_fixtures import served_app, TRUE_EXTENTS, make_sequence
 
 from annotate import app_tracking
-from annotate.app import App
 from annotate.app_guide import WORKFLOW
 from annotate.app_model import reconstruct_module
 from annotate.app_review import mark_fixed, next_in_review, review_list, review_markdown, severity
 from sequences.annotation import Annotation, FramePose, load_annotation
-from sequences.reader import open_sequence
 
 THRESHOLDS = SimpleNamespace(max_chain_departure_deg=8.0, min_fitness=0.5, max_chain_disagreement_m=0.01, min_points=100)
 
@@ -75,13 +71,8 @@ def sequence_root(tmp_path_factory):
 
 @pytest.fixture
 def app(sequence_root, tmp_path):
-    root = tmp_path / "box_seq"
-    shutil.copytree(sequence_root[0], root)
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    app = App(server, open_sequence(root))
-    yield app
-    app.close()
-    server.stop()
+    with served_app(sequence_root[0], tmp_path) as app:
+        yield app
 
 
 def test_the_page_leads_through_the_review(app):

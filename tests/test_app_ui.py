@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import shutil
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import viser
 from scipy.spatial.transform import Rotation
-from test_app_fixtures import TRUE_EXTENTS, make_sequence
+from test_app_fixtures import served_app, TRUE_EXTENTS, make_sequence
 
 from annotate.app import App
 from annotate.app_frames import load_display_frame
@@ -30,13 +29,8 @@ def sequence_root(tmp_path_factory):
 
 @pytest.fixture
 def app(sequence_root, tmp_path):
-    root = tmp_path / "box_seq"
-    shutil.copytree(sequence_root[0], root)
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    app = App(server, open_sequence(root))
-    yield app
-    app.close()
-    server.stop()
+    with served_app(sequence_root[0], tmp_path) as app:
+        yield app
 
 
 def test_next_frame_button_shows_the_next_frame_at_full_precision(app):

@@ -117,8 +117,7 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
 
     The chain's model holds every anchor's points at its placed pose (``anchor_parts``, object frame) and the chain's
     last frames: a model of the frames seen so far covers little of an object that turns new surfaces to the
-    camera, and the points of those surfaces then pair with its edges and hold the pose back (a bowl turning 7 deg a
-    frame was followed by half of that)."""
+    camera, and the points of those surfaces then pair with its edges and hold the pose back."""
     config = setup.config
     recent: deque = deque(maxlen=config.chain_model_frames)
     model = fuse(anchor_parts, setup.crops.voxel)

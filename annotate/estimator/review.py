@@ -11,23 +11,17 @@ one of them passes its limit (:class:`EstimatorConfig`, MAX_WEAK_TURN).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from evaluate.metrics.pose_errors import rotation_error
 
 from .config import EstimatorConfig
 from .registration import Registration
 
 
-#: flag a frame whose weakest rotation is this many times less certain than its median one (:func:`weak_turn`): a
-#: mug's frames with the handle in view measured 1.1-1.4, with it hidden 1.7-3.9 (dev-mug-pattern, true poses); a box
-#: seen on one face or two also measures 1.6-2 where its edges still fix the turn (chosen on dev, compare_engines.py)
+#: flag a frame whose weakest rotation is this many times less certain than its median one (:func:`weak_turn`): high
+#: enough that a box seen on one face, whose edges still fix the turn, passes; low enough to catch a plain mug's free
+#: spin (chosen on the dev split with benchmarks/compare_engines.py)
 MAX_WEAK_TURN = 2.2
-
-
-def rotation_deg(a: np.ndarray, b: np.ndarray, symmetric: bool) -> float:
-    """Degrees between the rotations of poses ``a`` and ``b`` (4x4); for symmetry y, between their y axes."""
-    if symmetric:
-        return float(np.degrees(np.arccos(np.clip(a[:3, 1] @ b[:3, 1], -1.0, 1.0))))
-    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).as_rotvec())))
 
 
 def marginal_sigmas(covariance: np.ndarray, symmetric: bool) -> tuple[float, float]:
@@ -70,7 +64,7 @@ def frame_figures(pose: np.ndarray, registration: Registration | None, covarianc
                 reasons.append(f"the shape seen here leaves one turn nearly free ({ratio:.1f}x less certain than the others): "
                                "the motion carries it")
         if registration.ok:
-            pull_deg, pull_m = rotation_deg(pose, registration.pose, symmetric), float(np.linalg.norm(pose[:3, 3] - registration.pose[:3, 3]))
+            pull_deg, pull_m = float(rotation_error(pose[:3, :3], registration.pose[:3, :3], "y" if symmetric else "none")), float(np.linalg.norm(pose[:3, 3] - registration.pose[:3, 3]))
             figures["pull_deg"], figures["pull_mm"] = round(pull_deg, 2), round(1000 * pull_m, 2)
             if pull_deg > config.max_disagreement[0] or pull_m > config.max_disagreement[1]:
                 reasons.append(f"its own points and its neighbours disagree by {pull_deg:.1f}° and {1000 * pull_m:.1f} mm")
