@@ -112,15 +112,16 @@ class _Setup:
         return result, crop
 
 
-def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anchor_parts: list, done: Callable[[], None]) -> tuple[dict[str, np.ndarray], list[Factor]]:
+def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anchor_part: tuple[np.ndarray, np.ndarray], done: Callable[[], None]) -> tuple[dict[str, np.ndarray], list[Factor]]:
     """Poses along ``order`` from the anchor ``start`` (pose ``placed``), and the chain steps between registered frames.
 
-    The chain's model holds every anchor's points at its placed pose (``anchor_parts``, object frame) and the chain's
-    last frames: a model of the frames seen so far covers little of an object that turns new surfaces to the
-    camera, and the points of those surfaces then pair with its edges and hold the pose back."""
+    The chain's model holds its anchor's points at the placed pose (``anchor_part``, object frame) and the chain's
+    last frames. Not the other anchors' points: each box is off by its own few degrees, so their points, fused at
+    the placed poses, disagree with each other, and a frame registered to them lands between them, biasing the step
+    from the anchor by the boxes' disagreement, not by the object's motion."""
     config = setup.config
     recent: deque = deque(maxlen=config.chain_model_frames)
-    model = fuse(anchor_parts, setup.crops.voxel)
+    model = fuse([anchor_part], setup.crops.voxel)
     poses, steps = {}, []
     last_id, last_pose = start, placed
     previous, before = placed, None
@@ -132,7 +133,7 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
             steps.append(Factor(setup.index[last_id], setup.index[frame_id], np.linalg.inv(last_pose) @ pose, result.information))
             last_id, last_pose = frame_id, pose
             recent.append(_object_part(crop, pose))
-            model = fuse([*anchor_parts, *recent], setup.crops.voxel)
+            model = fuse([anchor_part, *recent], setup.crops.voxel)
         else:
             pose = predicted  # the object lost (hidden, out of view): the motion carries the chain on
         before, previous = previous, pose
@@ -148,14 +149,14 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
     initial = np.empty((len(ids), 4, 4))
     nearest = np.full(len(ids), np.inf)
     steps: list[Factor] = []
-    anchor_parts = [_object_part(setup.crop(a, placed[a], thin=False), placed[a]) for a in anchors]
     jobs = []  # (anchor, its position, the frames its chain runs through)
     for n, (a, mark) in enumerate(zip(anchors, marks)):
         initial[mark], nearest[mark] = placed[a], 0
         after = ids[mark + 1 : marks[n + 1]] if n + 1 < len(marks) else ids[mark + 1 :]
         before = ids[marks[n - 1] + 1 : mark][::-1] if n > 0 else ids[:mark][::-1]
         jobs += [(a, mark, order) for order in (after, before) if order]
-    chains = ordered_map(lambda job: _chain(setup, job[0], placed[job[0]], job[2], anchor_parts, lambda: None), jobs, setup.workers,
+    part = lambda a: _object_part(setup.crop(a, placed[a], thin=False), placed[a])
+    chains = ordered_map(lambda job: _chain(setup, job[0], placed[job[0]], job[2], part(job[0]), lambda: None), jobs, setup.workers,
                          done=lambda job, _: [done() for _ in job[2]])
     for (a, mark, _), (poses, chain_steps) in zip(jobs, chains):
         steps += chain_steps
