@@ -62,7 +62,7 @@ def test_real_mug_scans_have_their_tight_box_centred_on_the_plane_of_axis_and_ha
 
     import trimesh
 
-    from annotate.tracking.symmetry import fit_symmetry_axis
+    from annotate.symmetry_axis import fit_symmetry_axis
 
     categories = json.loads((redwood75_dir / "annotations.json").read_text())
     meshes = {path: categories[path.stem]["category"] for path in sorted((redwood75_dir / "meshes").glob("*.obj"))}

@@ -14,7 +14,7 @@ from annotate.tracking import BACKENDS, closest_about_y, estimate_symmetry_axis,
 from annotate.tracking.model import ObjectModel
 from annotate.tracking.quality import pose_difference
 from annotate.tracking.registration import ModelTarget, RegistrationParams, register
-from annotate.tracking.symmetry import fit_symmetry_axis
+from annotate.symmetry_axis import fit_symmetry_axis
 from evaluate.geometry import invert, rotation_about_y, transform
 
 
@@ -215,7 +215,7 @@ def test_axis_point_of_a_sphere_cap_with_its_direction_known():
     """A shallow cap (a bowl's inside) leaves the axis direction free, but with the direction known the axis passes
     through the sphere's centre: fit_axis_point finds it (independent truth: the centre the cap was made about),
     also with a fifth of the points a hand's (a flat palm beside the cap) and ~1 deg of normal noise."""
-    from annotate.tracking.symmetry import fit_axis_point
+    from annotate.symmetry_axis import fit_axis_point
 
     rng = np.random.default_rng(1)
     directions = rng.normal(size=(6000, 3))

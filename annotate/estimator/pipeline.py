@@ -28,8 +28,8 @@ from annotate.engines import anchor_frames
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
-from annotate.tracking.symmetry import fit_symmetry_axis, snap_upright
-from annotate.tracking.workers import ordered_map, resolve
+from annotate.symmetry_axis import fit_symmetry_axis, snap_upright
+from annotate.workers import ordered_map, resolve
 
 from .config import EstimatorConfig
 from .graph import Factor, Solution, sigmas, solve
@@ -50,7 +50,7 @@ RECROP_DEG, RECROP_M = 0.5, 0.001
 #: a round registers the frames of each of this many contiguous blocks to the model of the others
 ROUND_BLOCKS = 4
 #: for symmetry y, the model's axis replaces the anchors' y when it is this well determined (the ratio of the direction
-#: fit's two smallest singular values, annotate.tracking.symmetry.fit_symmetry_axis: bottles and cans 0.06-0.08, a
+#: fit's two smallest singular values, annotate.symmetry_axis.fit_symmetry_axis: bottles and cans 0.06-0.08, a
 #: shallow bowl 0.2) ...
 MAX_AXIS_CONDITIONING = 0.15
 #: ... and within this many degrees of the anchors' y (further: the fit found another axis, not the labelled one)

@@ -9,7 +9,7 @@ Public API (used by ``annotate --track`` and the browser app):
 from .config import TrackingConfig
 from .engine import refine_frame, track_sequence
 from .registration import BACKENDS, RegistrationParams
-from .symmetry import closest_about_y, estimate_axis, estimate_symmetry_axis, snap_upright
+from annotate.symmetry_axis import closest_about_y, estimate_axis, estimate_symmetry_axis, snap_upright
 
 __all__ = [
     "BACKENDS",

@@ -49,10 +49,10 @@ import open3d as o3d
 from evaluate.geometry import untransform
 
 from .handle import handle_direction
-from .symmetry import fit_axis_point
+from annotate.symmetry_axis import fit_axis_point
 from .tilt import windowed_medians
 from .tracker import Tracker
-from .workers import ordered_map
+from annotate.workers import ordered_map
 
 Y = np.array([0.0, 1.0, 0.0])
 

@@ -92,8 +92,8 @@ from scipy.spatial.transform import Rotation
 from evaluate.geometry import untransform
 
 from .sampling import every_kth
-from .symmetry import fit_symmetry_axis
-from .workers import ordered_map
+from annotate.symmetry_axis import fit_symmetry_axis
+from annotate.workers import ordered_map
 
 #: spins (degrees) tried about the axis: a grid, the frame's own pose in the middle. +-45 deg: a mug's chains carry
 #: the spin 26-44 deg off through a long hidden-handle stretch (v5 seed 1, 3 manual frames), beyond +-15 deg; at +-60

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .registration import BACKENDS, RegistrationParams
-from .workers import resolve
+from annotate.workers import resolve
 
 
 @dataclass

@@ -115,10 +115,10 @@ from .refine import build_model, coarse_round, min_hits_for, recheck_disagreemen
 from .slide import against_the_motion, shifted, slide_corrections
 from .spin_window import windowed_spins
 from .stretch_spin import stretch_spins
-from .symmetry import fit_axis_point, fit_symmetry_axis, snap_upright
+from annotate.symmetry_axis import fit_axis_point, fit_symmetry_axis, snap_upright
 from .tilt import each_frame_untilted
 from .tracker import FrameResult, Tracker
-from .workers import ordered_map
+from annotate.workers import ordered_map
 
 Progress = Callable[[int, int], None]
 

@@ -12,7 +12,7 @@ from evaluate.geometry import untransform
 from sequences.errors import InputError
 from sequences.reader import Sequence
 
-from .workers import ordered_map
+from annotate.workers import ordered_map
 
 #: a batch of crops forks workers only from this many crops to compute (a fork costs ~20 ms, a laptop crop 1-3 ms)
 MIN_FORKED_CROPS = 16

@@ -48,7 +48,7 @@ from evaluate.geometry import untransform
 
 from .centring import END_PERCENTILES, centred, facing_normals
 from .tracker import Tracker
-from .workers import ordered_map
+from annotate.workers import ordered_map
 
 #: a face along y: normals within this of +-y (the lid's top edge is tilted back with the lid by up to 30 deg)
 FACE_CONE_DEG = 35.0

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from .propagate import predict
 from .quality import pose_difference
-from .symmetry import closest_about_y
+from annotate.symmetry_axis import closest_about_y
 from .tracker import FrameResult
 
 

@@ -24,9 +24,9 @@ from .registration import ModelTarget
 from .propagate import predict
 from .quality import pose_difference
 from .reconcile import common_correction, interpolate, pose_log
-from .symmetry import closest_about_y
+from annotate.symmetry_axis import closest_about_y
 from .tracker import FrameResult, Tracker
-from .workers import TaskPool, counting, ordered_map
+from annotate.workers import TaskPool, counting, ordered_map
 
 
 def build_model(tracker: Tracker, poses: dict[str, np.ndarray], max_frames: int, always: list[str] = (), free_space: bool = True) -> ObjectModel:

@@ -48,14 +48,13 @@ model of the other frames: frames 50-78 jumped 16-20 mm in y, to the next of the
 
 from __future__ import annotations
 
-import threading
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
-from typing import Iterator
 
 import numpy as np
 import open3d as o3d
+
+from annotate.workers import open3d_threads  # noqa: F401  (re-exported: the engine and tests import it from here)
 
 from . import icp
 
@@ -148,41 +147,6 @@ class ModelTarget:
         return self._kiss_map
 
 
-@contextmanager
-def open3d_threads(count: int) -> Iterator[None]:
-    """Run the body with Open3D limited to ``count`` threads (0: leave as is), restoring the setting after.
-
-    One thread makes tracking reproducible: Open3D's parallel reductions (ICP normal equations)
-    sum in a varying order, and the chains amplify those last-bit differences (measured: the same
-    mug run gave a median of 1.3 to 1.8 deg in five runs; with one thread the same figures each time).
-
-    The setting is one per process, and the browser tool may refine a frame while a track runs on another
-    thread: the lowest count of the bodies running holds until the last of them ends, and only then comes the
-    setting from before the first (restoring on each exit let the end of a refinement put a running track back
-    on every thread, and its worker processes would fork from there: workers.py).
-    """
-    global _threads_before
-    if count <= 0:
-        yield
-        return
-    count = int(count)
-    with _threads_lock:
-        if not _thread_limits:
-            _threads_before = o3d.utility.get_max_threads()
-        _thread_limits.append(count)
-        o3d.utility.set_max_threads(min(_thread_limits))
-    try:
-        yield
-    finally:
-        with _threads_lock:
-            _thread_limits.remove(count)
-            o3d.utility.set_max_threads(min(_thread_limits) if _thread_limits else _threads_before)
-
-
-#: The counts of the :func:`open3d_threads` bodies running now (any thread), and Open3D's setting before the first.
-_thread_limits: list[int] = []
-_threads_before = 0
-_threads_lock = threading.Lock()
 
 
 @dataclass

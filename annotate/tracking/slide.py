@@ -48,7 +48,7 @@ from .registration import ModelTarget
 from .sampling import every_kth
 from .smooth import registration_information
 from .tracker import FrameResult, Tracker
-from .workers import counting, ordered_map
+from annotate.workers import counting, ordered_map
 
 #: shifts (m) tried along the weak direction, then refined on a finer grid about the best
 COARSE_STEP_M = 0.0025

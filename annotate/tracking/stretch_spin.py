@@ -48,7 +48,7 @@ from scipy.spatial.transform import Rotation
 from .colour_spin import spin_matrix
 from .refine import build_model, min_hits_for, suspect
 from .tracker import FrameResult, Tracker
-from .workers import ordered_map
+from annotate.workers import ordered_map
 
 #: frames per block that turns as one
 BLOCK_FRAMES = 10

@@ -71,7 +71,7 @@ from evaluate.geometry import untransform
 
 from .faces import hinge_rotation, tilt_onto_axis
 from .tracker import Tracker
-from .workers import ordered_map
+from annotate.workers import ordered_map
 
 
 def frame_tilt(points_obj: np.ndarray, normal_radius: float, cone_deg: float, min_normals: int, max_deg: float, max_nn: int = 32,

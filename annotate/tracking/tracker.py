@@ -15,7 +15,7 @@ from .model import ObjectModel
 from .quality import in_box_share
 from .registration import register
 from .sampling import every_kth
-from .symmetry import closest_about_y
+from annotate.symmetry_axis import closest_about_y
 
 
 #: The model parts kept for reuse (bytes): a mug frame's part is about 100 kB, a laptop's about 450 kB.

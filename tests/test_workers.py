@@ -1,4 +1,4 @@
-"""The ordered map over worker processes (annotate/tracking/workers.py): a plain loop's results, in order."""
+"""The ordered map over worker processes (annotate/workers.py): a plain loop's results, in order."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from annotate.tracking import workers
+from annotate import workers
 from annotate.tracking.config import TrackingConfig
 
 needs_fork = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="worker processes are forked, on Linux only")

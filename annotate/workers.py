@@ -14,7 +14,7 @@ frame registered 30 times from the same start gave 25 different last bits).
 Forking needs Linux (elsewhere, or with one worker, the map is a plain loop), and Open3D on one thread in the
 parent (the engine's default, ``TrackingConfig.threads``; ``TrackingConfig.worker_count``): the workers inherit
 the setting, and neither OpenMP nor TBB promises that a thread pool survives a fork. So a map or a pool holds
-Open3D on one thread while its workers live (registration.open3d_threads), whoever calls it: a worker forked from a
+Open3D on one thread while its workers live (open3d_threads, below), whoever calls it: a worker forked from a
 process that had run Open3D on two threads (a test calling the refinement directly) hung in TBB's reduction of the
 ICP's normal equations, waiting for a thread it does not have (2 of 3 runs of the test suite on 2026-11-28).
 """
@@ -30,6 +30,8 @@ import threading
 import warnings
 from contextlib import ExitStack, contextmanager
 from typing import Callable, Iterable, Iterator, Sequence, TypeVar
+
+import open3d as o3d
 
 Item = TypeVar("Item")
 Result = TypeVar("Result")
@@ -141,9 +143,7 @@ def ordered_map(function: Callable[[Item], Result], items: Iterable[Item], worke
 
 
 def _one_thread():
-    """Open3D held on one thread (registration.open3d_threads) while forked workers live: see the module doc."""
-    from .registration import open3d_threads  # registration's modules need not load for a plain map
-
+    """Open3D held on one thread (open3d_threads, below) while forked workers live: see the module doc."""
     return open3d_threads(1)
 
 
@@ -264,3 +264,40 @@ def _loop(function: Callable[[Item], Result], items: list[Item], done: Callable[
         if done is not None:
             done(item, out[-1])
     return out
+
+
+@contextmanager
+def open3d_threads(count: int) -> Iterator[None]:
+    """Run the body with Open3D limited to ``count`` threads (0: leave as is), restoring the setting after.
+
+    One thread makes tracking reproducible: Open3D's parallel reductions (ICP normal equations)
+    sum in a varying order, and the chains amplify those last-bit differences (measured: the same
+    mug run gave a median of 1.3 to 1.8 deg in five runs; with one thread the same figures each time).
+
+    The setting is one per process, and the browser tool may refine a frame while a track runs on another
+    thread: the lowest count of the bodies running holds until the last of them ends, and only then comes the
+    setting from before the first (restoring on each exit let the end of a refinement put a running track back
+    on every thread, and its worker processes would fork from there: below).
+    """
+    global _threads_before
+    if count <= 0:
+        yield
+        return
+    count = int(count)
+    with _threads_lock:
+        if not _thread_limits:
+            _threads_before = o3d.utility.get_max_threads()
+        _thread_limits.append(count)
+        o3d.utility.set_max_threads(min(_thread_limits))
+    try:
+        yield
+    finally:
+        with _threads_lock:
+            _thread_limits.remove(count)
+            o3d.utility.set_max_threads(min(_thread_limits) if _thread_limits else _threads_before)
+
+
+#: The counts of the :func:`open3d_threads` bodies running now (any thread), and Open3D's setting before the first.
+_thread_limits: list[int] = []
+_threads_before = 0
+_threads_lock = threading.Lock()
