@@ -37,7 +37,10 @@ class EstimatorConfig:
     free_space_tolerance: float = 0.01  #: a model voxel a frame sees this far (m) beyond counts as free in that frame
     max_free_share: float = 0.25  #: model voxels seen through in more than this share of the frames that see them are dropped (a hand that moved)
     min_fitness: float = 0.5  #: flag a frame whose points pair with the model at a lower share than this
-    max_uncertainty: tuple[float, float] = (2.0, 0.003)  #: flag a frame whose marginal standard deviation exceeds this (deg, m)
+    #: flag a frame whose marginal standard deviation exceeds this (deg, m); the marginals are too confident (the
+    #: registrations count 100 points as independent, and the model they register to was fused at poses off alike), so
+    #: the rotation's limit is half of the 2 deg meant
+    max_uncertainty: tuple[float, float] = (1.0, 0.003)
     max_disagreement: tuple[float, float] = (3.0, 0.006)  #: flag a frame whose registration and solved pose differ more (deg, m)
     workers: int = 0  #: processes for the chains and the rounds' registrations (0: the cores available, at most 4; 1: none); the same poses for any count
 
