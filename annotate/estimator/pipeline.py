@@ -9,8 +9,7 @@
    correction that best fits the anchors (the object frame is theirs; the data fix only poses relative to it);
 4. rounds: the model of all frames is fused at the solved poses, without what other frames see through (a hand);
    every frame is registered to it, and the graph solved again with those registrations; until no frame moves
-   more than ``settled_*`` or ``rounds`` are done; for symmetry y, the object's y then turned onto the model's axis of
-   revolution where the model determines one;
+   more than ``settled`` or ``rounds`` are done;
 5. flags from the estimate: the registration's fitness, the graph's marginal standard deviation, and how far the
    graph pulled the frame from its registration, each with its reason in words.
 """
@@ -28,7 +27,6 @@ from annotate.engines import anchor_frames
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
-from annotate.symmetry_axis import fit_symmetry_axis, snap_upright
 from annotate.workers import ordered_map, resolve
 
 from .config import EstimatorConfig
@@ -49,12 +47,6 @@ CROP_PASSES = 3
 RECROP_DEG, RECROP_M = 0.5, 0.001
 #: a round registers the frames of each of this many contiguous blocks to the model of the others
 ROUND_BLOCKS = 4
-#: for symmetry y, the model's axis replaces the anchors' y when it is this well determined (the ratio of the direction
-#: fit's two smallest singular values, annotate.symmetry_axis.fit_symmetry_axis: bottles and cans 0.06-0.08, a
-#: shallow bowl 0.2) ...
-MAX_AXIS_CONDITIONING = 0.15
-#: ... and within this many degrees of the anchors' y (further: the fit found another axis, not the labelled one)
-MAX_UPRIGHT_DEG = 10.0
 
 
 def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:
@@ -203,23 +195,6 @@ def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None]) -> dict[s
     return dict(zip(ids, results))
 
 
-def _upright(setup: _Setup, poses: np.ndarray) -> np.ndarray:
-    """For symmetry y: ``poses`` with the object's y turned onto the symmetry axis of the model of all frames, and its
-    centre moved across onto it, where the model's normal lines determine that axis (a shallow bowl's, nearly a
-    sphere's, do not) and it lies within MAX_UPRIGHT_DEG of y. The anchors set the object frame; for a body of
-    revolution its shape sets the axis more exactly than the boxes' average (each off by a few degrees)."""
-    at = {f: poses[setup.index[f]] for f in setup.ids}
-    parts = dict(zip(setup.ids, ordered_map(lambda f: setup.crop(f, at[f], thin=False), setup.ids, setup.workers)))
-    config = setup.config
-    model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
-    if len(model) < 50:
-        return poses
-    axis, point, _, conditioning = fit_symmetry_axis(model.points, model.normals)
-    if conditioning > MAX_AXIS_CONDITIONING or np.degrees(np.arccos(np.clip(axis[1], -1, 1))) > MAX_UPRIGHT_DEG:
-        return poses
-    return np.stack([snap_upright(pose, axis, point) for pose in poses])
-
-
 def _solve(setup: _Setup, initial: np.ndarray, registrations: list[Factor], steps: list[Factor], anchors: dict[int, np.ndarray]) -> Solution:
     config = setup.config
     return solve(initial, registrations, steps, anchors, sigmas(config.anchor_sigma_deg, config.anchor_sigma_m),
@@ -270,8 +245,6 @@ def track_sequence(
         poses = new
         if degrees < config.settled[0] and metres < config.settled[1]:
             break
-    if setup.symmetric:
-        poses = _upright(setup, poses)
     if progress is not None:
         progress(total, total)
     # 5: the document, at the colour frames' times
