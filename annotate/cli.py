@@ -8,6 +8,9 @@ from sequences.errors import InputError, run_cli
 
 from .engines import DEFAULT_ENGINE, ENGINES
 
+#: What a batch's local processes import once (batch.local's server): the tracking engines.
+TRACK_PRELOAD = ("numpy", "scipy.spatial", "open3d", "annotate.tracking", "annotate.estimator")
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="annotate", description="Annotate an RGB-D sequence with oriented boxes in the browser, or track headless.")
@@ -72,6 +75,10 @@ def _track(args) -> int:
     """``--track``: one SEQ here as ever, several (or --cluster) as a batch; ``--json`` prints the report."""
     from batch.report import json_stdout, write_json
 
+    if len(args.sequences) > 1 and not args.cluster:  # the local processes' server imports while this process does
+        from batch.local import start_server
+
+        start_server(TRACK_PRELOAD)
     from .track_command import run_track, run_track_batch, track_line, track_one
 
     with json_stdout(args.json) as stdout:

@@ -21,9 +21,6 @@ from sequences.errors import EXIT_BAD_INPUT, InputError
 from sequences.lock import DocumentLock
 from sequences.reader import open_sequence
 
-#: What a unit's process imports once (batch.local's server): the tracking engines.
-PRELOAD = ("numpy", "scipy.spatial", "open3d", "annotate.tracking", "annotate.estimator")
-
 
 def run_track(args) -> int:
     """Headless tracking (``args.sequence``, ``args.annotation``); returns the exit code.
@@ -163,6 +160,7 @@ def run_track_batch(args, stdout=None) -> tuple[int, dict]:
     from batch import Unit, run_batch
     from batch.local import available_cores
 
+    from .cli import TRACK_PRELOAD
     from .engines import engine_name
 
     sigma = _sigma(args)
@@ -180,7 +178,7 @@ def run_track_batch(args, stdout=None) -> tuple[int, dict]:
         return track_line({**outcome.summary, "seconds": outcome.seconds})
 
     workers = args.workers or available_cores()
-    batch = run_batch(units, workers=workers, cluster=args.cluster, redo=args.redo, desc="track", noun="seq", preload=PRELOAD, describe=describe)
+    batch = run_batch(units, workers=workers, cluster=args.cluster, redo=args.redo, desc="track", noun="seq", preload=TRACK_PRELOAD, describe=describe)
     counts = batch.counts()
     print(f"{counts['done']} of {len(units)} sequence(s) tracked" + (f", {counts['skipped']} finished before" if counts["skipped"] else "")
           + (f", {counts['failed']} failed" if counts["failed"] else ""), file=sys.stderr)

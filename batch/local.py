@@ -9,8 +9,9 @@ and trimesh again (measured on the 2-core machine); the server is started withou
 where forking this process, with tqdm's and Open3D's threads running, is not.
 
 One thread per unit: the server starts with OpenMP and the BLAS libraries on one thread (``UNIT_ENVIRONMENT``),
-and its children inherit that. Results then do not depend on the worker count (Open3D's and BLAS's parallel
-sums add in an order that varies with their threads), and N units use N cores.
+and its children inherit that; a command turns its own helper threads off in its units (the reconstruction's
+frame decoding ahead). Results then do not depend on the worker count (Open3D's and BLAS's parallel sums add in
+an order that varies with their threads), and N units use N cores.
 
 A Dask worker runs its units the same way (:func:`run_in_process`, batch.cluster): in a fresh process of its
 machine, forked from its own server, so that a unit runs in the same environment on every engine, and a unit
@@ -85,8 +86,12 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def _start_server(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
-    """The forkserver context, its server started (once per process) with ``preload`` imported, on one thread."""
+def start_server(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
+    """The forkserver context, its server started (once per process) with ``preload`` imported, on one thread.
+
+    Returns at once: the server imports ``preload`` on its own while this process goes on, and the first unit's
+    start waits for it. A command calls this first thing (before its own imports and the work list), so that on
+    two cores the server's imports (1-2 s) overlap the command's instead of following them."""
     context = multiprocessing.get_context("forkserver")
     from multiprocessing import forkserver
 
@@ -149,7 +154,7 @@ class LocalPool:
     def _start_queued(self) -> None:
         while self._queue and len(self._running) < self.workers:
             if self._context is None:
-                self._context = _start_server(self.preload)
+                self._context = start_server(self.preload)
             _, _, token, function, args = heapq.heappop(self._queue)
             receiver, sender = self._context.Pipe(duplex=False)
             process = self._context.Process(target=_child, args=(sender, function, args))  # not a daemon: a unit may start processes of its own

@@ -15,8 +15,6 @@ import sys
 from contextlib import contextmanager, redirect_stdout
 from typing import Iterator, TextIO
 
-import numpy as np
-
 
 @contextmanager
 def json_stdout(enabled: bool = True) -> Iterator[TextIO]:
@@ -47,9 +45,10 @@ def json_stdout(enabled: bool = True) -> Iterator[TextIO]:
 
 
 def _plain(value):
-    if isinstance(value, np.generic):
+    np = sys.modules.get("numpy")  # not imported here: without NumPy loaded, no value is a NumPy one
+    if np is not None and isinstance(value, np.generic):
         return value.item()
-    if isinstance(value, np.ndarray):
+    if np is not None and isinstance(value, np.ndarray):
         return value.tolist()
     if hasattr(value, "__fspath__"):
         return os.fspath(value)

@@ -19,6 +19,12 @@ import sys
 
 from sequences.errors import InputError, run_cli
 
+#: What a batch's local processes import once (batch.local's server): the methods and the datasets.
+PRELOAD = ("numpy", "scipy.spatial", "trimesh", "open3d", "PIL.PngImagePlugin", "PIL.JpegImagePlugin", "evaluate.units", "evaluate.runner", "evaluate.datasets",
+           "evaluate.methods.box", "evaluate.methods.template")
+#: Method specs that are look-ups in this process (evaluate.methods.get_method): the oracle and predictions files.
+LOOKUP_SUFFIXES = (".jsonl", ".json", ".ndjson")
+
 EXAMPLES = """examples:
   evaluate --dataset ../shared/data/redwood75 --method spd=spd.jsonl --method oracle --out results/
   evaluate --dataset gt/ --frames sequences/ --method box --method template --out results/
@@ -73,8 +79,6 @@ def _main(args, stdout) -> int:
 
     from batch.local import available_cores
     from batch.report import write_json
-    from evaluate.config import build_config, read_config_file
-    from evaluate.units import batch_predictor
 
     start = time.perf_counter()
     if args.workers is not None and args.workers < 1:
@@ -83,7 +87,14 @@ def _main(args, stdout) -> int:
         raise InputError("--workers", "--workers and --cluster exclude each other: a cluster's workers are its own")
     if args.seed is not None and args.seed < 0:
         raise InputError("--seed", "must be a non-negative integer")
+    if not args.config:
+        _start_early(args, {})
+    from evaluate.config import build_config, read_config_file
+    from evaluate.units import batch_predictor
+
     file_values = read_config_file(args.config) if args.config else {}
+    if args.config:
+        _start_early(args, file_values)
     config = build_config(args, file_values)
 
     from evaluate.report import nocs_labels, nocs_values, write_outputs
@@ -108,6 +119,31 @@ def _main(args, stdout) -> int:
         write_json({"command": "evaluate", "out": str(config.out), "seconds": round(time.perf_counter() - start, 3), "outputs": {k: str(v) for k, v in paths.items()},
                     "notes": evaluation.notes, "results": results, "batch": units}, stdout)
     return 0
+
+
+def _start_early(args, file_values: dict) -> None:
+    """Start the local processes' server now where a batch will run on them: its imports then overlap this
+    process's (the dataset, the metrics) instead of following them."""
+    from batch.local import available_cores, start_server
+
+    if not args.cluster and (args.workers or available_cores()) > 1 and any(_runs_here(spec) for spec in _specs(args, file_values)):
+        start_server(PRELOAD)
+
+
+def _specs(args, file_values: dict) -> list:
+    """The method specs as given (the command line's, else the config file's), before they are checked."""
+    if args.method:
+        return list(args.method)
+    return [m.get("spec") if isinstance(m, dict) else m for m in file_values.get("methods") or []]
+
+
+def _runs_here(spec) -> bool:
+    """Whether a method spec runs on the frames here (a batch's units), as evaluate.methods.get_method reads it:
+    not the oracle, not NAME=predictions file."""
+    if not isinstance(spec, str):
+        return False
+    name, target = (part.strip() for part in spec.split("=", 1)) if "=" in spec else (None, spec.strip())
+    return not (target == "oracle" or target.lower().endswith(LOOKUP_SUFFIXES) or (name is not None and ":" not in target and target not in ("box", "template")))
 
 
 def _check_out(out) -> None:

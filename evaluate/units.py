@@ -7,14 +7,23 @@ then writes the predictions to ``OUT/.batch/<method>/<first>-<last>.npz`` atomic
 chunk and scores them all at once, as without a batch (:func:`evaluate.runner.evaluate_dataset`), so the
 results are the same for any worker count and engine.
 
-Finished (:mod:`batch.units`): the chunk's marker (``.json`` beside it) records the state of its inputs: the
-method's spec and configuration, the source file of its class's module (an edited method runs again; a change
-in a module it imports does not count: ``--redo``), the options that shape a prediction (the surface samples
-and their seed), and per sample its truth, camera and the names, sizes and times of its frame, mask and mesh files.
+What the samples of a method share (the template method's templates) is kept in ``OUT/.batch/shared/<method>/``
+(:meth:`evaluate.methods.base.Method.prepare_shared`): the first unit that needs it builds it and writes it
+atomically, the units that start later read it. Units that start together each build it: the client does not
+build it for them first, as every unit would then wait for it (the client imports the method's libraries
+itself, while the units' processes have them preloaded).
+
+Finished (:mod:`batch.units`): the chunk's marker (``.json`` beside it) records the state of its inputs and
+output (:func:`chunk_state`): the method's spec and configuration with the files it names, the source file of its
+class's module (an edited method runs again; a change in a module it imports does not count: ``--redo``), the
+options that shape a prediction (the surface samples and their seed), per sample its truth (pose, box, category,
+symmetry, a mug's handle), camera, the contents of its mask and mesh files and the names, sizes and times of its
+frames, and the predictions file itself.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import sys
@@ -23,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from batch import Unit
-from batch.units import sha256_text
+from batch.units import file_bytes, listing, sha256_text
 from evaluate.config import EvaluateConfig
 from sequences.atomic import write_bytes_atomic
 from sequences.errors import InputError
@@ -34,12 +43,10 @@ from sequences.names import safe_name
 CHUNK = 16
 #: Where the units' predictions and markers live in OUT.
 MARKERS = ".batch"
-#: What a unit's process imports once (batch.local's server): the methods and the datasets.
-PRELOAD = ("numpy", "scipy.spatial", "trimesh", "open3d", "PIL.PngImagePlugin", "PIL.JpegImagePlugin", "evaluate.units", "evaluate.runner", "evaluate.datasets",
-           "evaluate.methods.box", "evaluate.methods.template")
 
 
 def _file(path: Path | None) -> list | None:
+    """A frame file by its name, size and modification time (frames are large; replacing one changes these)."""
     if path is None:
         return None
     try:
@@ -49,11 +56,45 @@ def _file(path: Path | None) -> list | None:
     return [str(path), info.st_size, info.st_mtime_ns]
 
 
-def sample_state(sample) -> list:
-    """What a prediction for ``sample`` may depend on: its truth (a mask may be rendered from it), camera and files."""
+def _content(path: Path | None, digests: dict) -> list | None:
+    """A truth file (a mesh, a mask: small) by its name and content's SHA-256, read once per ``digests``."""
+    if path is None:
+        return None
+    if path not in digests:
+        try:
+            digests[path] = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        except OSError:
+            digests[path] = None
+    return [str(path), digests[path]]
+
+
+def sample_state(sample, digests: dict | None = None) -> list:
+    """What a prediction for ``sample`` may depend on: its truth (pose, box, category, symmetry, a mug's handle; the
+    mesh and mask files' contents: a mask may be rendered from the mesh), its camera and its frame files."""
+    digests = {} if digests is None else digests
     return [sample.dataset, sample.sequence, sample.frame, sample.instance, sample.category, sample.symmetry, sample.position.tolist(),
-            sample.orientation.tolist(), sample.extents.tolist(), sample.camera.to_dict(), _file(sample.color_path),
-            _file(sample.depth_path), _file(sample.mask_path), _file(sample.mesh_path)]
+            sample.orientation.tolist(), sample.extents.tolist(), sample.handle_visible, sample.camera.to_dict(), _file(sample.color_path),
+            _file(sample.depth_path), _content(sample.mask_path, digests), _content(sample.mesh_path, digests)]
+
+
+def referenced_files(value, base: Path | None, digests: dict) -> list:
+    """The files and folders a method's configuration names (a template folder, a model's weights): a file by its
+    content, a folder by its files' names, sizes and times; strings that name nothing are left out."""
+    if isinstance(value, dict):
+        return [[str(k), referenced_files(v, base, digests)] for k, v in sorted(value.items(), key=lambda item: str(item[0]))]
+    if isinstance(value, (list, tuple)):
+        return [referenced_files(v, base, digests) for v in value]
+    if not isinstance(value, (str, Path)) or not str(value) or "\n" in str(value):
+        return []
+    path = Path(value) if Path(value).is_absolute() or base is None else Path(base) / value
+    try:
+        if path.is_file():
+            return _content(path, digests)
+        if path.is_dir():
+            return [str(path), listing(path, ("",))]
+    except OSError:  # a name too long for a path, ...
+        pass
+    return []
 
 
 def method_source(method) -> bytes:
@@ -67,9 +108,14 @@ def method_source(method) -> bytes:
         return b""
 
 
-def chunk_state(config: EvaluateConfig, entry, method, samples: list) -> str:
-    return sha256_text("evaluate", entry.spec, entry.config, None if entry.base is None else str(entry.base), method_source(method),
-                       config.surface_samples, config.seed, [sample_state(s) for s in samples])
+def chunk_state(config: EvaluateConfig, entry, method, samples: list, predictions: bytes) -> str:
+    """A chunk's state (its marker records it): the method (spec, configuration and the files it names, its class's
+    source), the options that shape a prediction (the surface samples and their seed), every sample's truth and
+    files (:func:`sample_state`), and the predictions file written (a chunk file replaced or cut runs again)."""
+    digests: dict = {}
+    return sha256_text("evaluate", entry.spec, entry.config, None if entry.base is None else str(entry.base),
+                       referenced_files(entry.config, entry.base, digests), method_source(method), config.surface_samples, config.seed,
+                       [sample_state(s, digests) for s in samples], hashlib.sha256(predictions).hexdigest())
 
 
 #: The dataset and methods of the last chunk this process predicted, by their configuration: chunks predicted in
@@ -77,17 +123,42 @@ def chunk_state(config: EvaluateConfig, entry, method, samples: list) -> str:
 _opened: dict = {}
 
 
+def _key(config: EvaluateConfig) -> str:
+    return sha256_text(str(config.dataset), str(config.frames), [(m.spec, m.config, str(m.base)) for m in config.methods])
+
+
 def _open(config: EvaluateConfig):
     """(dataset, methods) of ``config``, kept for the next chunk of this process."""
     from evaluate.datasets import open_dataset
     from evaluate.runner import resolve_methods
 
-    key = sha256_text(str(config.dataset), str(config.frames), [(m.spec, m.config, str(m.base)) for m in config.methods])
+    key = _key(config)
     if key not in _opened:
         _opened.clear()
         dataset = open_dataset(config.dataset, config.frames)
         _opened[key] = (dataset, resolve_methods(config, dataset))
     return _opened[key]
+
+
+def shared_folder(config: EvaluateConfig, name: str) -> Path:
+    """Where method ``name`` keeps what its samples share for this batch (its templates, ...)."""
+    return Path(config.out) / MARKERS / "shared" / safe_name(name, fallback="method")
+
+
+def categories_of(samples: list) -> list[str]:
+    """The samples' categories, each once, in their order."""
+    return list(dict.fromkeys(s.category for s in samples))
+
+
+def _prepare(method, samples: list, folder: Path) -> None:
+    """The method's :meth:`~evaluate.methods.base.Method.prepare_shared` for ``samples``' categories; a failure there
+    is left to the samples (predicting them says why, one by one, as without a batch)."""
+    prepare = getattr(method, "prepare_shared", None)
+    if callable(prepare) and samples:
+        try:
+            prepare(categories_of(samples), folder)
+        except Exception:
+            pass
 
 
 def predict_chunk(config: EvaluateConfig, index: int, first: int, last: int, path: str) -> dict:
@@ -101,10 +172,12 @@ def predict_chunk(config: EvaluateConfig, index: int, first: int, last: int, pat
         raise InputError(config.dataset, f"the dataset has {len(dataset)} samples, not {last + 1}: it changed during the run")
     method = methods[index]
     samples = dataset.samples[first:last + 1]
+    _prepare(method, samples, shared_folder(config, method.name))  # what another unit prepared (templates): read, not rebuilt
     results = [predict_sample(method, sample, FrameInputs(dataset, sample), config) for sample in samples]
-    write_bytes_atomic(path, chunk_bytes(results))
+    data = chunk_bytes(results)
+    write_bytes_atomic(path, data)
     return {"method": method.name, "samples": len(samples), "failed": sum(p is None for p, _ in results),
-            "state": chunk_state(config, config.methods[index], method, samples)}
+            "state": chunk_state(config, config.methods[index], method, samples, data)}
 
 
 def chunk_bytes(results: list[tuple]) -> bytes:
@@ -165,7 +238,8 @@ def plan(config: EvaluateConfig, dataset, methods: list) -> list[tuple[Unit, int
             samples = dataset.samples[first:last + 1]
 
             def state(entry=entry, method=method, samples=samples, path=path) -> str | None:
-                return chunk_state(config, entry, method, samples) if path.is_file() else None
+                data = file_bytes(path)
+                return None if data is None else chunk_state(config, entry, method, samples, data)
 
             unit = Unit(f"{method.name} {first + 1}-{last + 1}", predict_chunk, (config, index, first, last, str(path)),
                         path.with_suffix(".json"), state, size=last - first + 1)
@@ -183,6 +257,10 @@ def batch_predictor(config: EvaluateConfig, workers: int, cluster: str | None, r
         from evaluate.runner import predict_sample
 
         planned = plan(config, dataset, methods)
+        _opened.clear()
+        _opened[_key(config)] = (dataset, methods)  # chunks run in this process (one worker) use these, opened once
+        from evaluate.cli import PRELOAD
+
         batch = run_batch([p[0] for p in planned], workers=workers, cluster=cluster, redo=redo, desc="evaluate", noun="prediction",
                           quiet=quiet, preload=PRELOAD, inline=True, describe=lambda o: f"{o.key}: {o.summary.get('samples', '?')} predictions in {o.seconds:.1f} s")
         for (unit, index, first, last, path), outcome in zip(planned, batch.outcomes):

@@ -18,14 +18,14 @@ import sys
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from batch.report import json_stdout, write_json
 from sequences.errors import EXIT_BAD_INPUT, InputError, run_cli
 
-from . import units
+from . import SURFACE, SURFACES
 from .export_index import FORMATS, check_folder_format, read_index
-from .pipeline import SURFACE, SURFACES
+
+#: What a batch's local processes import once (batch.local's server): the reconstruction and its exports.
+PRELOAD = ("numpy", "scipy.spatial", "trimesh", "open3d", "reconstruct.pipeline", "reconstruct.export", "reconstruct.export_bop", "reconstruct.export_nocs")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,6 +81,8 @@ class StageBar:
 
 def reconstruct_one(root: str, annotation_file: str | None, out: Path, options: dict, quiet: bool = False) -> dict:
     """Reconstruct and export one sequence here, with a progress bar; returns its summary (the index's path in ``index``)."""
+    from . import units
+
     bar = StageBar(Path(root).name, quiet)
     try:
         reconstruction, sequence, annotation, _ = units.reconstruct(root, options, annotation_file, progress=bar)
@@ -95,6 +97,10 @@ def reconstruct_one(root: str, annotation_file: str | None, out: Path, options: 
 
 def _single(args, out: Path, options: dict) -> list[dict]:
     """One SEQ, here, as before batches: no markers, nothing skipped."""
+    from tqdm import tqdm
+
+    from . import units
+
     start = time.perf_counter()
     root = args.sequences[0]
     try:
@@ -115,20 +121,19 @@ def _batch(args, out: Path, options: dict) -> tuple[list[dict], str]:
     from batch import Unit, run_batch
     from batch.local import available_cores
 
-    ordered = args.format != "redwood75"
+    from . import units
+
     batch_units = []
     document = args.annotation  # one SEQ only
     names = [units.sequence_name(root, document) for root in args.sequences]  # None: its document does not load (its unit says why)
     twice = sorted({n for n in names if n is not None and names.count(n) > 1})
     if twice:
         raise InputError(None, f"two SEQ export under the name {twice[0]!r} (their documents' sequence, else their folders'): one would replace the other")
+    reserved = units.reserve(out, args.format, [n for n in names if n is not None])  # scene numbers in the command line's order
     for root, name in zip(args.sequences, names):
         marker = None if name is None else units.marker_path(out, name)
         state = None if name is None else (lambda root=root, name=name: units.state_now(root, document, out, options, name))
-        if ordered:
-            batch_units.append(Unit(root, units.reconstruct_step, (root, document, options), marker, state, units.export_step, (root, str(out), options)))
-        else:
-            batch_units.append(Unit(root, units.whole_unit, (root, document, str(out), options), marker, state))
+        batch_units.append(Unit(root, units.whole_unit, (root, document, str(out), options, reserved.get(name)), marker, state))
     before = list(read_index(out)) if out.is_dir() else []
 
     def describe(outcome) -> str:
@@ -137,10 +142,9 @@ def _batch(args, out: Path, options: dict) -> tuple[list[dict], str]:
 
     workers = args.workers or available_cores()
     batch = run_batch(batch_units, workers=workers, cluster=args.cluster, redo=args.redo, desc="reconstruct", noun="seq", quiet=args.quiet,
-                      preload=units.PRELOAD, describe=describe)
-    if not ordered:
-        names = [o.summary["sequence"] for o in batch.outcomes if o.status in ("done", "skipped") and "sequence" in o.summary]
-        units.order_index(out, before, names)
+                      preload=PRELOAD, describe=describe)
+    names = [o.summary["sequence"] for o in batch.outcomes if o.status in ("done", "skipped") and "sequence" in o.summary]
+    units.order_index(out, before, names)
     return [o.as_dict() for o in batch.outcomes], batch.engine
 
 
@@ -167,10 +171,15 @@ def _main(args, stdout) -> int:
         raise InputError(out, "--out exists and is not a folder")
     if args.format == "nocs" and args.no_masks:
         raise InputError(out, "--no-masks does not apply to --format nocs (NOCS's layout needs its masks)")
+    batch = len(args.sequences) > 1 or args.cluster
+    if batch and not args.cluster:  # the local processes' server imports PRELOAD while this process imports and checks
+        from batch.local import start_server
+
+        start_server(PRELOAD)
     check_folder_format(out, args.format)  # one folder, one format
     options = options_of(args)
     start = time.perf_counter()
-    if len(args.sequences) > 1 or args.cluster:
+    if batch:
         report, engine = _batch(args, out, options)
     else:
         report, engine = _single(args, out, options), "this process"

@@ -91,8 +91,8 @@ def read_annotations(path: Path) -> dict:
 def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotation: Annotation, out_dir: str | Path, masks: bool = True) -> Path:
     """Write one reconstruction into ``out_dir`` (see the module docstring); returns ``annotations.json``'s path.
 
-    Everything is computed first (masks rendered, existing ``annotations.json`` read and checked), then
-    staged and swapped in as one unit; a failure or a kill leaves ``out_dir``'s previous export whole.
+    Everything is computed and staged first (masks rendered, existing ``annotations.json`` read and checked),
+    then swapped in as one unit under OUT's lock; a failure or a kill leaves ``out_dir``'s previous export whole.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -114,18 +114,21 @@ def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotatio
         report["warning"] = "camera differs from REDWOOD75's (fx = fy = 525, cx = 319.5, cy = 239.5), which cpas_toolbox assumes"
     preview = preview_png_bytes(reconstruction, sequence, frame_masks)
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    transaction = ExportTransaction(out_dir, name)  # staged without OUT's lock: other exports swap meanwhile
+    try:
+        for file_name, data in mask_files.items():
+            transaction.stage(f"masks/{name}/{file_name}", data)
+        transaction.stage(entry["mesh"], obj.encode("utf-8"))
+        transaction.stage(f"reports/{name}.json", report_json(report).encode("utf-8"))
+        transaction.stage(f"reports/{name}.png", preview)
+        if reconstruction.surface is not None:  # what was seen: grey observed, blue inferred, orange unseen
+            transaction.stage(f"reports/{name}.ply", coloured_ply(reconstruction.mesh, reconstruction.surface))
+    except BaseException:
+        transaction.abort()
+        raise
     with OutLock(out_dir):
-        recover(out_dir)
-        transaction = ExportTransaction(out_dir, name)
         try:
-            for file_name, data in mask_files.items():
-                transaction.stage(f"masks/{name}/{file_name}", data)
-            transaction.stage(entry["mesh"], obj.encode("utf-8"))
-            transaction.stage(f"reports/{name}.json", report_json(report).encode("utf-8"))
-            transaction.stage(f"reports/{name}.png", preview)
-            if reconstruction.surface is not None:  # what was seen: grey observed, blue inferred, orange unseen
-                transaction.stage(f"reports/{name}.ply", coloured_ply(reconstruction.mesh, reconstruction.surface))
+            recover(out_dir)
             # read under the lock: another sequence may have been added meanwhile
             merged = read_annotations(annotations_path)
             merged[name] = entry

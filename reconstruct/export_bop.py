@@ -20,11 +20,17 @@ Written as bop_toolkit's ``docs/bop_datasets_format.md`` specifies it, and its s
   ``min_x|y|z`` and ``size_x|y|z`` of the vertices' box, mm; a document's ``symmetry: y`` becomes
   ``symmetries_continuous: [{axis: [0, 0, 1], offset: [0, 0, 0]}]``, the y axis in BOP's z-up frame, through
   the origin). The scene's object id equals its scene id.
+- ``OUT/test_targets_bop19.json``: the dataset's test targets as ``scripts/enumerate_test_targets.py`` lists them:
+  per scene and image (ids ascending) ``{im_id, inst_count, obj_id, scene_id}`` for each object whose
+  ``visib_fract`` is at least :data:`TARGET_MIN_VISIB` (0.1), ``inst_count`` its instances that visible (here 1).
 - ``OUT/annotations.json``: our index (:mod:`reconstruct.export_index`): per sequence its scene and object ids,
   category, symmetry, and the frame id of each image id.
 
-JSON files are laid out as ``inout.save_json`` writes them (one line per image, keys in numeric order, each
-value's keys sorted). The whole sequence is swapped in as one unit, the scene folder whole.
+JSON files are laid out as ``inout.save_json`` writes them (a mapping: one line per image, keys in numeric order,
+each value's keys sorted; a list: one item a line, its keys sorted). The frames are rendered and staged before
+OUT's lock is taken; under it the scene gets its number and the files that hold it (``scene_gt.json``, the
+model's name, ``models_info.json``, the targets), and the whole sequence is swapped in as one unit, the scene
+folder whole.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ from sequences.errors import InputError
 from sequences.names import check_name
 from sequences.reader import Sequence
 
-from .export_index import export_unit, next_number
+from .export_index import PENDING, export_unit, read_index, reserve_numbers, scene_number
 from .masks import MeshRenderer, mask_png_bytes
 from .pipeline import Reconstruction
 
@@ -59,6 +65,11 @@ SPLIT = "test"
 #: The canvas on which the whole silhouette is rendered is this many images wide and high, the image in its
 #: middle (calc_gt_info.py renders on 3x the image to count ``px_count_all`` beyond the image's border).
 CANVAS = 3
+
+#: The dataset's list of test targets (enumerate_test_targets.py's file name), in OUT beside models/.
+TARGETS = "test_targets_bop19.json"
+#: The least visible fraction of a target: enumerate_test_targets.py's ``min_visib_fract`` (BOP's targets since 2019).
+TARGET_MIN_VISIB = 0.1
 
 #: progress(stage, done, total)
 Progress = Callable[[str, int, int], None]
@@ -219,10 +230,41 @@ def _existing_models_info(path: Path) -> dict:
     return data
 
 
-def export_bop(reconstruction: Reconstruction, sequence: Sequence, out_dir: str | Path, masks: bool = True, progress: Progress | None = None) -> Path:
+def targets_bop19(infos: dict, obj_id: int, scene_id: int, min_visib_fract: float = TARGET_MIN_VISIB) -> list[dict]:
+    """``test_targets_bop19.json``'s entries of one scene with one object (enumerate_test_targets.py): per image
+    (ids ascending) ``{im_id, inst_count, obj_id, scene_id}`` where the object's ``visib_fract`` is at least
+    ``min_visib_fract``; ``infos``: ``scene_gt_info.json``'s content {im_id: [entry]}."""
+    return [{"im_id": int(im_id), "inst_count": 1, "obj_id": int(obj_id), "scene_id": int(scene_id)}
+            for im_id, entries in sorted(infos.items(), key=lambda item: int(item[0])) if entries[0]["visib_fract"] >= min_visib_fract]
+
+
+def bop_json_list(content: list[dict]) -> bytes:
+    """JSON text as ``bop_toolkit_lib.inout.save_json`` writes a list: one item a line, its keys sorted."""
+    lines = [f"  {json.dumps(item, sort_keys=True)}" for item in content]
+    return ("[\n" + ",\n".join(lines) + ("\n" if lines else "") + "]").encode("utf-8")
+
+
+def _existing_targets(path: Path) -> list[dict]:
+    data = load_document(path, TARGETS, as_yaml=False)
+    if not isinstance(data, list) or not all(isinstance(t, dict) and isinstance(t.get("scene_id"), int) and isinstance(t.get("im_id"), int) for t in data):
+        raise InputError(path, f"existing {TARGETS} is not a list of {{scene_id, im_id, ...}} targets; not overwriting it")
+    return data
+
+
+def merged_targets(existing: list[dict], scene: list[dict], scene_id: int) -> list[dict]:
+    """The dataset's targets with scene ``scene_id``'s replaced by ``scene``, ordered by scene and image id (as
+    enumerate_test_targets.py lists them); the order of the other scenes' own entries is kept within an image."""
+    kept = [t for t in existing if t["scene_id"] != scene_id] + scene
+    return sorted(kept, key=lambda t: (t["scene_id"], t["im_id"]))  # stable: several objects of an image keep their order
+
+
+def export_bop(reconstruction: Reconstruction, sequence: Sequence, out_dir: str | Path, masks: bool = True, progress: Progress | None = None,
+               reserved: int | None = None) -> Path:
     """Write one reconstruction into ``out_dir`` as a BOP scene and object (see the module docstring); returns the
     index's path. ``masks=False`` leaves out ``mask/`` and ``mask_visib/`` (optional in BOP); the rest is computed
-    alike. A failure or a kill leaves ``out_dir``'s previous export whole."""
+    alike. ``reserved``: the scene id a batch reserved (used where the sequence has none yet and it is free). The
+    frames are rendered and staged before OUT's lock is taken (:func:`reconstruct.export_index.export_unit`). A
+    failure or a kill leaves ``out_dir``'s previous export whole."""
     out = Path(out_dir)
     name = check_name(reconstruction.sequence, "sequence name", out)
     camera = sequence.camera
@@ -235,14 +277,13 @@ def export_bop(reconstruction: Reconstruction, sequence: Sequence, out_dir: str 
             raise InputError(files.depth_path, "BOP's depth images are PNG files")
     K = [float(v) for v in camera.K.reshape(-1)]
     depth_scale = float(camera.depth_scale * MM)  # BOP: multiply the depth image by this to get millimetres
-    render = SilhouetteRenderer(reconstruction.mesh, camera)
+    scene = f"{SPLIT}/{PENDING}"  # numbered under the lock
+    model = f"models/{PENDING}.ply"
 
-    def writer(index: dict, stage) -> tuple[dict, list[str], list[str]]:
-        previous = index.get(name)
-        scene_id = previous["scene_id"] if isinstance(previous, dict) and isinstance(previous.get("scene_id"), int) else next_number(index, "scene_id", _taken(out))
-        obj_id = scene_id
-        scene = f"{SPLIT}/{scene_id:06d}"
-        cameras, gts, infos, images = {}, {}, {}, {}
+    def prepare(stage) -> tuple[dict, dict, dict, dict]:
+        """Every frame rendered and staged: (poses {im_id: (R, t)}, gt infos, images {im_id: frame id}, model info)."""
+        render = SilhouetteRenderer(reconstruction.mesh, camera)
+        cameras, poses, infos, images = {}, {}, {}, {}
         for done, frame_id in enumerate(frame_ids):  # frames in turn; pixels vectorised
             if progress is not None:
                 progress("export", done, len(frame_ids))
@@ -252,28 +293,47 @@ def export_bop(reconstruction: Reconstruction, sequence: Sequence, out_dir: str 
             stage(f"{scene}/rgb/{im_id:06d}{suffix}", files.color_path.read_bytes())
             stage(f"{scene}/depth/{im_id:06d}.png", files.depth_path.read_bytes())
             pose = reconstruction.poses[frame_id]
-            R, t = bop_pose(pose)
+            poses[im_id] = bop_pose(pose)
             measured = sequence.depth_raw(im_id).astype(np.float64) * depth_scale
             depth_mm, whole, offset = render(pose)
             info, mask, visib = gt_info(depth_mm, measured, camera.K, whole, offset)
             cameras[im_id] = {"cam_K": K, "depth_scale": depth_scale}
-            gts[im_id] = [{"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": obj_id}]
             infos[im_id] = [info]
             images[str(im_id)] = frame_id
             if masks:
                 stage(f"{scene}/mask/{im_id:06d}_000000.png", mask_png_bytes(mask))
                 stage(f"{scene}/mask_visib/{im_id:06d}_000000.png", mask_png_bytes(visib))
         stage(f"{scene}/scene_camera.json", bop_json(cameras))
-        stage(f"{scene}/scene_gt.json", bop_json(gts))
         stage(f"{scene}/scene_gt_info.json", bop_json(infos))
         vertices_mm = np.asarray(reconstruction.mesh.vertices, dtype=np.float64) @ SHAPENET_FROM_BOP * MM  # p_bop = S^T p_sn
-        stage(f"models/obj_{obj_id:06d}.ply", ply_bytes(vertices_mm, np.asarray(reconstruction.mesh.faces), name))
-        info_path = out / "models" / "models_info.json"
-        models_info = _existing_models_info(info_path) if info_path.is_file() else {}  # read under the lock
-        models_info[str(obj_id)] = model_info(vertices_mm, reconstruction.symmetry)
-        stage("models/models_info.json", bop_json(models_info))
-        entry = {"split": SPLIT, "scene_id": scene_id, "obj_id": obj_id, "category": reconstruction.category,
-                 "symmetry": reconstruction.symmetry, "images": images}
-        return entry, [scene], []
+        stage(model, ply_bytes(vertices_mm, np.asarray(reconstruction.mesh.faces), name))
+        return poses, infos, images, model_info(vertices_mm, reconstruction.symmetry)
 
-    return export_unit(out, name, "bop", writer)
+    def finish(index: dict, transaction, prepared) -> tuple[dict, list[str], list[str]]:
+        """Under OUT's lock: the scene's number, the files that hold it, the shared models_info.json and targets."""
+        poses, infos, images, info = prepared
+        number = scene_number(index, name, "scene_id", _taken(out), reserved)
+        obj_id = number  # one object per scene
+        folder = f"{SPLIT}/{number:06d}"
+        transaction.rename(scene, folder)
+        transaction.rename(model, f"models/obj_{obj_id:06d}.ply")
+        gts = {im_id: [{"cam_R_m2c": R, "cam_t_m2c": t, "obj_id": obj_id}] for im_id, (R, t) in poses.items()}
+        transaction.stage(f"{folder}/scene_gt.json", bop_json(gts))
+        info_path = out / "models" / "models_info.json"
+        models_info = _existing_models_info(info_path) if info_path.is_file() else {}
+        models_info[str(obj_id)] = info
+        transaction.stage("models/models_info.json", bop_json(models_info))
+        targets_path = out / TARGETS
+        existing = _existing_targets(targets_path) if targets_path.is_file() else []
+        transaction.stage(TARGETS, bop_json_list(merged_targets(existing, targets_bop19(infos, obj_id, number), number)))
+        entry = {"split": SPLIT, "scene_id": number, "obj_id": obj_id, "category": reconstruction.category,
+                 "symmetry": reconstruction.symmetry, "images": images}
+        return entry, [folder], []
+
+    return export_unit(out, name, "bop", prepare, finish)
+
+
+def reserve_scene_ids(out: str | Path, names: list[str]) -> dict[str, int]:
+    """The scene ids a batch's exports of ``names`` get, in this order (:func:`reconstruct.export_index.reserve_numbers`)."""
+    out = Path(out)
+    return reserve_numbers(read_index(out), names, "scene_id", _taken(out) if out.is_dir() else set())

@@ -7,16 +7,24 @@ scenes and images by numbers, it is our index of the sequences in ``OUT``: ``{se
 readers use it to give back the sequence names and frame ids (``evaluate.datasets``). One folder holds one
 format: :func:`folder_format` tells which, and an export of another format into it is refused.
 
-:func:`export_unit` runs one sequence's export under ``OUT``'s lock: recover a killed export, read the index,
-let the format's writer stage its files (streamed, one frame at a time, so memory stays flat), swap them in
-with the new index last. A folder (a BOP or NOCS scene) is swapped as one unit: a re-export with fewer frames
-leaves no image of the old one behind.
+:func:`export_unit` runs one sequence's export in two steps. First, without ``OUT``'s lock, the format's
+``prepare`` renders and stages every file that does not depend on what ``OUT`` holds (streamed, one frame at a
+time, so memory stays flat), its scene folder under the placeholder name :data:`PENDING`. Then, under the lock:
+recover a killed export, read the index, and let ``finish`` number the scene (the sequence's number if it has
+one, else the number the caller reserved for it, else the least free one), rename the placeholder, stage the few
+small files that hold the number or are shared by every scene, and swap them in with the new index last. So
+exports into one folder render side by side and wait for each other only for their renames. A folder (a BOP or
+NOCS scene) is swapped as one unit: a re-export with fewer frames leaves no image of the old one behind.
+
+A batch reserves the numbers before its units start (:func:`reserve_numbers`, in the command line's order), so
+that the scenes are numbered alike whichever unit finishes first.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from sequences.documents import parse_json
 from sequences.errors import InputError
@@ -29,8 +37,12 @@ FORMATS = ("redwood75", "bop", "nocs")
 
 #: stage(rel, data): write one file of the export, ``rel`` to OUT ('/'-separated plain names).
 Stage = Callable[[str, bytes], None]
-#: writer(index, stage) -> (index entry, folders to swap as units, files to remove after the commit).
-Writer = Callable[[dict, Stage], tuple[dict, list[str], list[str]]]
+#: prepare(stage) -> what finish needs: the heavy part, without OUT's lock.
+Prepare = Callable[[Stage], Any]
+#: finish(index, transaction, prepared) -> (index entry, folders to swap as units, files to remove after the commit).
+Finish = Callable[[dict, ExportTransaction, Any], tuple[dict, list[str], list[str]]]
+#: The scene folder's name in the staging until its number is known (a number is never this).
+PENDING = "pending"
 
 
 def read_index(out: Path) -> dict:
@@ -80,20 +92,50 @@ def next_number(index: dict, key: str, taken: set[int]) -> int:
     return number
 
 
-def export_unit(out: str | Path, sequence: str, fmt: str, writer: Writer) -> Path:
+def scene_number(index: dict, name: str, key: str, taken: set[int], reserved: int | None = None) -> int:
+    """The number of sequence ``name``'s scene: its entry's, else ``reserved`` where no other entry nor ``taken``
+    (scenes on disk) uses it, else the least free one."""
+    previous = index.get(name)
+    if isinstance(previous, dict) and isinstance(previous.get(key), int) and not isinstance(previous.get(key), bool):
+        return previous[key]
+    used = {entry.get(key) for other, entry in index.items() if other != name and isinstance(entry, dict)} | set(taken)
+    if isinstance(reserved, int) and reserved >= 1 and reserved not in used:
+        return reserved
+    return next_number(index, key, taken)
+
+
+def reserve_numbers(index: dict, names: list[str], key: str, taken: set[int]) -> dict[str, int]:
+    """The scene numbers that exports of ``names`` one after another, in this order, would give (each its entry's
+    number, else the least free one): what a batch hands its units, whichever of them finishes first."""
+    index = {k: v for k, v in index.items()}
+    numbers = {}
+    for name in names:
+        numbers[name] = scene_number(index, name, key, taken)
+        index[name] = {**(index[name] if isinstance(index.get(name), dict) else {}), key: numbers[name]}
+    return numbers
+
+
+def export_unit(out: str | Path, sequence: str, fmt: str, prepare: Prepare, finish: Finish) -> Path:
     """Export one sequence into ``out`` as one staged unit (see the module notes); returns the index's path."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
     name = check_name(sequence, "sequence name", out)
-    out.mkdir(parents=True, exist_ok=True)
-    with OutLock(out):
-        recover(out)
+    if out.is_dir():  # refuse a broken index or another format before any work (checked again under the lock)
         check_folder_format(out, fmt)
-        index = read_index(out)
-        transaction = ExportTransaction(out, name)
+    out.mkdir(parents=True, exist_ok=True)
+    transaction = ExportTransaction(out, name)
+    try:
+        prepared = prepare(transaction.stage)
+    except BaseException:
+        transaction.abort()
+        raise
+    with OutLock(out):
         try:
-            entry, units, obsolete = writer(dict(index), transaction.stage)
+            recover(out)
+            check_folder_format(out, fmt)
+            index = read_index(out)
+            entry, units, obsolete = finish(dict(index), transaction, prepared)
             # one swap target per unit folder, not one per file inside it
             grouped: list[str] = []
             for rel in transaction.targets:

@@ -30,6 +30,8 @@ REAL275's camera is fixed (NOCS's code and our reader assume its intrinsics,
 ``evaluate.datasets.nocs.NOCS_CAMERA``): frames from another camera are re-projected into it (same camera
 centre and axes, so a pixel's depth is unchanged: depth nearest, colour bilinear), and masks and maps are
 rendered in it. Frames whose object shows no pixel are left out (NOCS's loader asserts an instance has pixels).
+The frames are rendered and staged before OUT's lock is taken; under it the scene gets its number and the
+pickles that name it (:func:`reconstruct.export_index.export_unit`).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from sequences.errors import InputError
 from sequences.names import check_name
 from sequences.reader import Sequence
 
-from .export_index import export_unit, next_number
+from .export_index import PENDING, export_unit, read_index, reserve_numbers, scene_number
 from .masks import DEFAULT_TOLERANCE, MeshRenderer, visible_mask
 from .pipeline import Reconstruction
 
@@ -239,9 +241,12 @@ def extents_bytes(extents: np.ndarray) -> bytes:
     return body.getvalue().encode("ascii")
 
 
-def export_nocs(reconstruction: Reconstruction, sequence: Sequence, out_dir: str | Path, progress: Progress | None = None) -> Path:
+def export_nocs(reconstruction: Reconstruction, sequence: Sequence, out_dir: str | Path, progress: Progress | None = None,
+                reserved: int | None = None) -> Path:
     """Write one reconstruction into ``out_dir`` as a REAL275-layout scene (see the module docstring); returns the
-    index's path. A failure or a kill leaves ``out_dir``'s previous export whole."""
+    index's path. ``reserved``: the number a batch reserved (used where the sequence has none yet and it is
+    free). The frames are rendered and staged before OUT's lock is taken (:func:`reconstruct.export_index.export_unit`).
+    A failure or a kill leaves ``out_dir``'s previous export whole."""
     out = Path(out_dir)
     name = check_name(reconstruction.sequence, "sequence name", out)
     category = reconstruction.category
@@ -254,16 +259,14 @@ def export_nocs(reconstruction: Reconstruction, sequence: Sequence, out_dir: str
     source, target = sequence.camera, NOCS_CAMERA
     same_camera = source.K.tolist() == target.K.tolist() and source.shape == target.shape  # else re-projected into REAL275's
     extents = np.asarray(reconstruction.extents, dtype=np.float64)
-    renderer = MeshRenderer(reconstruction.mesh, target)
-    reprojection = None if same_camera else Reprojection(source, target)
 
-    def writer(index: dict, stage) -> tuple[dict, list[str], list[str]]:
-        previous = index.get(name) if isinstance(index.get(name), dict) else {}
-        taken = {int(p.name.removeprefix("scene_")) for p in (out / SPLIT).glob("scene_*") if p.name.removeprefix("scene_").isdigit()}
-        number = previous.get("scene_number") if isinstance(previous.get("scene_number"), int) else next_number(index, "scene_number", taken)
-        scene = f"scene_{number}"
-        folder = f"{SPLIT}/{scene}"
-        frames, skipped, pickles = {}, [], []
+    pending = f"{SPLIT}/{PENDING}"  # the scene folder, numbered under the lock
+
+    def prepare(stage) -> tuple[dict, list[str], dict]:
+        """Every frame rendered and staged: (frames {stem: frame id}, frames left out, pickle fields per stem)."""
+        renderer = MeshRenderer(reconstruction.mesh, target)
+        reprojection = None if same_camera else Reprojection(source, target)
+        frames, skipped, truths = {}, [], {}
         for done, frame_id in enumerate(frame_ids):  # frames in turn; pixels vectorised
             if progress is not None:
                 progress("export", done, len(frame_ids))
@@ -281,23 +284,44 @@ def export_nocs(reconstruction: Reconstruction, sequence: Sequence, out_dir: str
             labels = np.full(target.shape, BACKGROUND, dtype=np.uint8)
             labels[mask] = INSTANCE
             color_png, depth_png = frame_pngs(sequence, position, depth, reprojection)
-            stage(f"{folder}/{stem}_color.png", color_png)
-            stage(f"{folder}/{stem}_depth.png", depth_png)
-            stage(f"{folder}/{stem}_mask.png", png_bytes(labels))
-            stage(f"{folder}/{stem}_coord.png", png_bytes(coord_image(points, pixels, extents, target.shape)))
-            stage(f"{folder}/{stem}_meta.txt", f"{INSTANCE} {class_id} {name}\n".encode("ascii"))
-            pickle_name = f"gts/{SPLIT}/results_{SPLIT}_{scene}_{stem}.pkl"
-            stage(pickle_name, results_pickle(position, f"{folder}/{stem}", class_id, mask_bbox(mask), nocs_pose(pose, extents), extents, handle))
-            pickles.append(pickle_name)
+            stage(f"{pending}/{stem}_color.png", color_png)
+            stage(f"{pending}/{stem}_depth.png", depth_png)
+            stage(f"{pending}/{stem}_mask.png", png_bytes(labels))
+            stage(f"{pending}/{stem}_coord.png", png_bytes(coord_image(points, pixels, extents, target.shape)))
+            stage(f"{pending}/{stem}_meta.txt", f"{INSTANCE} {class_id} {name}\n".encode("ascii"))
+            truths[stem] = (position, mask_bbox(mask), nocs_pose(pose, extents), handle)
             frames[stem] = frame_id
         if not frames:
             raise InputError(sequence.root, "the object shows no pixel in any posed frame (in REAL275's camera): nothing to export")
         stage(f"obj_models/{SPLIT}/{name}.obj", obj_bytes(reconstruction.mesh, name))
         stage(f"obj_models/{SPLIT}/{name}.txt", extents_bytes(extents))
+        return frames, skipped, truths
+
+    def finish(index: dict, transaction, prepared) -> tuple[dict, list[str], list[str]]:
+        """Under OUT's lock: the scene's number, and the pickles that name it (a few hundred bytes each)."""
+        frames, skipped, truths = prepared
+        previous = index.get(name) if isinstance(index.get(name), dict) else {}
+        taken = {int(p.name.removeprefix("scene_")) for p in (out / SPLIT).glob("scene_*") if p.name.removeprefix("scene_").isdigit()}
+        number = scene_number(index, name, "scene_number", taken, reserved)
+        scene = f"scene_{number}"
+        folder = f"{SPLIT}/{scene}"
+        transaction.rename(pending, folder)
+        pickles = []
+        for stem, (position, bbox, sRT, handle) in truths.items():
+            pickle_name = f"gts/{SPLIT}/results_{SPLIT}_{scene}_{stem}.pkl"
+            transaction.stage(pickle_name, results_pickle(position, f"{folder}/{stem}", class_id, bbox, sRT, extents, handle))
+            pickles.append(pickle_name)
         obsolete = [p for p in previous.get("pickles", []) if isinstance(p, str) and p not in pickles]
         entry = {"split": SPLIT, "scene_number": number, "scene": scene, "model": name, "category": category, "class_id": class_id,
                  "symmetry": reconstruction.symmetry, "frames": frames, "skipped": skipped, "pickles": pickles,
                  "reprojected_from": None if same_camera else source.to_dict()}
         return entry, [folder], obsolete
 
-    return export_unit(out, name, "nocs", writer)
+    return export_unit(out, name, "nocs", prepare, finish)
+
+
+def reserve_scene_numbers(out: str | Path, names: list[str]) -> dict[str, int]:
+    """The scene numbers a batch's exports of ``names`` get, in this order (:func:`reconstruct.export_index.reserve_numbers`)."""
+    out = Path(out)
+    taken = {int(p.name.removeprefix("scene_")) for p in (out / SPLIT).glob("scene_*") if p.name.removeprefix("scene_").isdigit()}
+    return reserve_numbers(read_index(out), names, "scene_number", taken)

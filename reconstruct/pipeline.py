@@ -18,7 +18,7 @@ from sequences.annotation import Annotation, annotation_path
 from sequences.errors import InputError
 from sequences.reader import Sequence
 
-from . import carving, evidence, meshing, tsdf
+from . import SURFACE, SURFACES, carving, evidence, meshing, tsdf  # noqa: F401 (SURFACE, SURFACES: defined there, light to import)
 from .revolution import fit_revolution, revolved_fill
 from .seen import SurfaceLabels, label_surface
 from .tight_box import fit_tight_box
@@ -97,9 +97,11 @@ def select_frames(sequence: Sequence, annotation: Annotation, frames: list[str] 
 DEPTH_CACHE_BYTES = 256 * 2**20
 
 
-def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarray], cache: dict[str, np.ndarray] | None = None) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
-    """Depth images (metres) in order, decoded one ahead on a worker thread (PNG decoding overlaps carving); with
-    ``cache`` (frame id -> raw depth), read from it where it holds the frame and filled up to DEPTH_CACHE_BYTES."""
+def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarray], cache: dict[str, np.ndarray] | None = None,
+                  ahead: bool = True) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """Depth images (metres) in order, decoded one ahead on a worker thread (PNG decoding overlaps carving; without
+    ``ahead``, in turn on this thread); with ``cache`` (frame id -> raw depth), read from it where it holds the
+    frame and filled up to DEPTH_CACHE_BYTES."""
     if cache is None:
         cache = {}
     scale = np.float32(sequence.camera.depth_scale)
@@ -107,15 +109,22 @@ def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarra
     def raw(frame_id: str) -> np.ndarray:
         return cache[frame_id] if frame_id in cache else sequence.depth_raw(frame_id)
 
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(raw, ids[0])
-        for i, frame_id in enumerate(ids):
-            image = pending.result()
-            if i + 1 < len(ids):
-                pending = pool.submit(raw, ids[i + 1])
-            if frame_id not in cache and sum(a.nbytes for a in cache.values()) + image.nbytes <= DEPTH_CACHE_BYTES:
-                cache[frame_id] = image
-            yield frame_id, image.astype(np.float32) * scale, poses[frame_id]
+    def decoded() -> Iterator[np.ndarray]:
+        if not ahead:
+            yield from (raw(frame_id) for frame_id in ids)
+            return
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = pool.submit(raw, ids[0])
+            for i in range(len(ids)):
+                image = pending.result()
+                if i + 1 < len(ids):
+                    pending = pool.submit(raw, ids[i + 1])
+                yield image
+
+    for frame_id, image in zip(ids, decoded()):
+        if frame_id not in cache and sum(a.nbytes for a in cache.values()) + image.nbytes <= DEPTH_CACHE_BYTES:
+            cache[frame_id] = image
+        yield frame_id, image.astype(np.float32) * scale, poses[frame_id]
 
 
 #: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``). The half diagonal keeps
@@ -129,15 +138,6 @@ VOXEL_MARGIN = 0.5
 
 #: The annotated box bounds what no frame observed, grown by this share of its sides (a box placed a little small).
 BOX_PRIOR_SLACK = 0.05
-
-#: The surface meshed: ``carving`` (the carved occupancy) or ``tsdf`` (the depth fused where frames measured it, the
-#: carved hull elsewhere: :mod:`reconstruct.tsdf`). Measured on the benchmark's dev split from the true poses (19
-#: sequences): the largest error of a measured box face 1.7 -> 1.2 mm at the median (mean 2.0 -> 1.6; the square bowl's
-#: 3.4 -> 2.9 mm meets the goal, the laptop's 5.4 -> 4.4 does not), observed precision and recall at 5 mm unchanged
-#: but for the laptop (0.95 / 0.92 -> 0.97 / 0.94) and a can (precision 0.936 -> 0.929), the sum of posed F@5mm
-#: 18.56 -> 18.60; fusion costs ~25 % more CPU (laptop, the largest object: 9.0 -> 11.5 s for 100 frames).
-SURFACES = ("carving", "tsdf")
-SURFACE = "tsdf"
 
 
 def reconstruct_sequence(
@@ -163,6 +163,7 @@ def reconstruct_sequence(
     smoothing_iterations: int = 10,
     include_flagged: bool = False,
     surface: str = SURFACE,
+    ahead: bool = True,
 ) -> Reconstruction:
     """Carve, mesh, smooth, fit the tight box of one annotated sequence and label what was seen.
 
@@ -176,7 +177,8 @@ def reconstruct_sequence(
     (:mod:`reconstruct.evidence`). ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
     VOXEL_MARGIN. ``surface`` (SURFACES): mesh the carved occupancy, or the fused depth where frames measured the
     surface and the carved hull elsewhere (:mod:`reconstruct.tsdf`). ``surface`` of the result labels the mesh
-    observed, inferred or unseen (:mod:`reconstruct.seen`).
+    observed, inferred or unseen (:mod:`reconstruct.seen`). ``ahead``: decode and prepare the next frame on a second
+    thread while this one is carved (off: one thread, the same result; a batch's units, one per core, turn it off).
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -198,7 +200,7 @@ def reconstruct_sequence(
     if voxel_margin is None:
         voxel_margin = VOXEL_MARGIN
     depth_cache: dict[str, np.ndarray] = {}
-    result = carving.carve(grid, _depth_frames(sequence, ids, poses, depth_cache), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked)
+    result = carving.carve(grid, _depth_frames(sequence, ids, poses, depth_cache, ahead), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked, ahead=ahead)
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -228,7 +230,7 @@ def reconstruct_sequence(
         say("fuse", 0, len(ids))
         start = time.perf_counter()
         solid = meshing.largest_component(occupied)
-        fused = tsdf.fuse(grid, _depth_frames(sequence, ids, poses, depth_cache), sequence.camera, solid)
+        fused = tsdf.fuse(grid, _depth_frames(sequence, ids, poses, depth_cache, ahead), sequence.camera, solid)
         timings["fuse"] = time.perf_counter() - start
     say("mesh", 0, 1)
     start = time.perf_counter()
@@ -246,7 +248,7 @@ def reconstruct_sequence(
     timings["tight_box"] = time.perf_counter() - start
     start = time.perf_counter()
     # what was seen: the carving frames' depth once more, against the mesh at their poses
-    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, depth_cache)), sequence.camera, filled, centre)
+    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, depth_cache, ahead)), sequence.camera, filled, centre)
     timings["labels"] = time.perf_counter() - start
     say("mesh", 1, 1)
 

@@ -3,17 +3,20 @@
 An export of sequence S into OUT replaces several files (``S.obj``, ``masks/S/``, ``reports/S.json|png``)
 and one shared file, ``annotations.json``, the commit point. :class:`ExportTransaction`:
 
-1. stages every new file in ``OUT/.staging-S-<id>/`` (nothing of OUT touched; a kill leaves only that folder);
-2. writes a journal ``OUT/.journal-S-<id>.json`` naming the targets, which of them existed, and the fingerprint of
-   the ``annotations.json`` it will write;
+1. stages every new file in ``OUT/.staging-S-<id>/`` (nothing of OUT touched; a kill leaves only that folder),
+   without OUT's lock: the staging is claimed by an ``flock`` on ``OUT/.staging-S-<id>.lock``, held while it is
+   written, so exports render and write side by side and only the swap below waits for the lock;
+2. under OUT's lock, writes a journal ``OUT/.journal-S-<id>.json`` naming the targets, which of them existed, and
+   the fingerprint of the ``annotations.json`` it will write;
 3. per target, moves the previous file (or folder) to ``OUT/.backup-S-<id>/`` and the staged one into place;
 4. replaces ``annotations.json`` atomically (the commit), then removes the journal, the backup and the staging.
 
-:func:`recover` (run at the start of every export into OUT, holding OUT's lock) finishes what a killed run
+:func:`recover` (run at the start of every swap into OUT, holding OUT's lock) finishes what a killed run
 left: a journal whose ``annotations.json`` was written is cleaned up (the new export stands); any other is
 rolled back from its backup (the previous export stands). Staging and backup folders without a journal are
-removed. So after any kill, the next run finds the previous or the new export, whole. ``OUT/.export.lock``
-(an ``flock``, dropped by the kernel when its holder dies) keeps two exports into OUT from interleaving.
+removed, but for a staging whose claim is still held (an export preparing it now; the kernel drops the ``flock``
+of a process that dies). So after any kill, the next run finds the previous or the new export, whole.
+``OUT/.export.lock`` (an ``flock`` too) keeps two swaps into OUT from interleaving.
 """
 
 from __future__ import annotations
@@ -67,6 +70,42 @@ class OutLock:
             self._fd = None
 
 
+def _claim(path: Path):
+    """A new file ``path`` already ``flock``-ed by this process (its open file; closing it drops the lock): made
+    under a temporary name, locked, then renamed, so that :func:`recover` never finds it unlocked while its owner
+    lives. Should recover take the temporary file for a dead process's in between, the rename fails: try again."""
+    temporary = path.with_name(path.name + ".tmp")
+    while True:
+        handle = open(temporary, "xb")
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+        try:
+            os.rename(temporary, path)
+            return handle
+        except FileNotFoundError:
+            handle.close()
+
+
+def _claimed(out: Path, tag: str) -> bool:
+    """Whether a live process holds the claim of staging ``tag`` (its lock file, or the temporary one being made)."""
+    for name in (f".staging-{tag}.lock", f".staging-{tag}.lock.tmp"):
+        try:
+            fd = os.open(out / name, os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)  # drops the lock taken here, if any
+    return False
+
+
+def _tag(name: str) -> str:
+    """The ``S-<id>`` of a staging's, backup's or claim's name."""
+    return name.split("-", 1)[1].removesuffix(".tmp").removesuffix(".lock")
+
+
 def recover(out: Path) -> list[str]:
     """Finish or roll back interrupted exports in ``out`` (hold its :class:`OutLock`); returns what was done, a line each."""
     out = Path(out)
@@ -95,15 +134,22 @@ def recover(out: Path) -> list[str]:
         journal.unlink()
         done.append(f"{'completed' if committed else 'rolled back'} the interrupted export of {record.get('sequence', '?')}")
     live = {p.stem.removeprefix(".journal-") for p in out.glob(".journal-*.json")}
-    for leftover in list(out.glob(".staging-*")) + list(out.glob(".backup-*")):
-        if leftover.name.split("-", 1)[1] not in live:
+    leftovers = sorted(out.glob(".staging-*")) + sorted(out.glob(".backup-*"))
+    for leftover in sorted(leftovers, key=lambda p: p.name.endswith((".lock", ".tmp"))):  # folders before their claims
+        tag = _tag(leftover.name)
+        if tag in live or _claimed(out, tag):
+            continue
+        if leftover.is_dir():
             shutil.rmtree(leftover, ignore_errors=True)
             done.append(f"removed {leftover.name}, left by a killed run")
+        else:
+            leftover.unlink(missing_ok=True)
     return done
 
 
 class ExportTransaction:
-    """Stage one sequence's files, then swap them into ``out`` with the new ``annotations.json`` (see the module notes)."""
+    """Stage one sequence's files (without OUT's lock), then swap them into ``out`` with the new ``annotations.json``
+    (holding OUT's lock; see the module notes)."""
 
     def __init__(self, out: Path, sequence: str) -> None:
         self.out = Path(out)
@@ -112,6 +158,19 @@ class ExportTransaction:
         self.staging = self.out / f".staging-{self.tag}"
         self.backup = self.out / f".backup-{self.tag}"
         self.targets: list[str] = []
+        self._claim = None  # the open, flock-ed claim file while this staging is being written
+
+    def _claimed(self) -> None:
+        if self._claim is None:
+            self.out.mkdir(parents=True, exist_ok=True)
+            self._claim = _claim(self.out / f".staging-{self.tag}.lock")
+
+    def _release(self) -> None:
+        """Give up the claim (after the staging is swapped in or removed, or on a failure: recover may clean up)."""
+        if self._claim is not None:
+            (self.out / f".staging-{self.tag}.lock").unlink(missing_ok=True)
+            self._claim.close()
+            self._claim = None
 
     def stage(self, rel: str, data: bytes) -> None:
         """A file of the export, ``rel`` to OUT (its folder part made of plain names)."""
@@ -119,14 +178,35 @@ class ExportTransaction:
         for part in parts:
             check_name(part, "export path part", self.out)
         path = inside(self.staging, *parts)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(path, data)
+        self._claimed()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_bytes_atomic(path, data)
+        except BaseException:
+            self._release()  # the caller aborts; a kill here leaves the staging to the next recover
+            raise
         top = parts[0] if len(parts) == 1 else "/".join(parts[:2]) if parts[0] in ("masks",) else rel
         if top not in self.targets:
             self.targets.append(top)
 
+    def rename(self, old: str, new: str) -> None:
+        """Move a staged file or folder ``old`` to ``new`` (both relative to OUT, plain names): a scene staged under a
+        placeholder gets its number, known only under OUT's lock."""
+        for part in new.split("/"):
+            check_name(part, "export path part", self.out)
+        source, target = inside(self.staging, *old.split("/")), inside(self.staging, *new.split("/"))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.rename(source, target)
+        self.targets[:] = [new + rel[len(old):] if rel == old or rel.startswith(old + "/") else rel for rel in self.targets]
+
     def commit(self, annotations: dict) -> None:
-        """Swap the staged files in and write ``annotations`` (a whole ``annotations.json``) last."""
+        """Swap the staged files in and write ``annotations`` (a whole ``annotations.json``) last; hold OUT's lock."""
+        try:
+            self._commit(annotations)
+        finally:
+            self._release()
+
+    def _commit(self, annotations: dict) -> None:
         text = json.dumps(annotations, indent=1)
         for rel in self.targets:
             inside(self.out, *rel.split("/"))
@@ -149,3 +229,4 @@ class ExportTransaction:
 
     def abort(self) -> None:
         shutil.rmtree(self.staging, ignore_errors=True)
+        self._release()

@@ -1,11 +1,12 @@
 """``reconstruct-sequence SEQ...`` as a batch: one unit per sequence (see :mod:`batch`).
 
-A REDWOOD75 unit reconstructs and exports its sequence on a worker: the export stages its files and swaps them
-into OUT as one transaction under OUT's lock, so units export side by side; the client then puts
-``annotations.json``'s entries in the order of the command line (:func:`order_index`), as one run after another
-would have left them. A BOP or NOCS export numbers its scene by the index it finds, and renders inside OUT's
-lock, so there the unit's export is its ordered second step: reconstructions run side by side, exports one at a
-time in the order of the command line, and every worker count numbers the scenes alike.
+A unit reconstructs and exports its sequence on a worker. Every export renders and stages its files without
+OUT's lock and swaps them in under it (:mod:`reconstruct.transaction`), so units export side by side and wait for
+each other only for their renames; the client then puts ``annotations.json``'s entries in the order of the
+command line (:func:`order_index`), as one run after another would have left them. BOP and NOCS number their
+scenes: the client reserves the numbers in the order of the command line before the units start
+(:func:`reserve`), so every worker count numbers the scenes alike. A unit reconstructs on one thread (no frame
+decoded ahead on a second one, as a single SEQ does): the batch runs one unit per core.
 
 Finished (:mod:`batch.units`): the marker ``OUT/.batch/<sequence>.json`` records the state of the unit's inputs
 (the document's bytes, the frames' names, sizes and times, the camera file, the options) and OUT's index still
@@ -28,8 +29,6 @@ from .transaction import ANNOTATIONS, OutLock, recover
 
 #: Where a batch's finished markers live in OUT (a hidden folder: no format's reader looks at it).
 MARKERS = ".batch"
-#: What a unit's process imports once (batch.local's server): the reconstruction and its exports.
-PRELOAD = ("numpy", "scipy.spatial", "trimesh", "open3d", "reconstruct.pipeline", "reconstruct.export", "reconstruct.export_bop", "reconstruct.export_nocs")
 
 
 def prepare(root: str | Path, annotation_file: str | None, fmt: str) -> tuple[Sequence, Annotation, Path, bytes]:
@@ -93,53 +92,54 @@ def summary_of(reconstruction, path: Path, state: str) -> dict:
             "index": str(path), "warnings": _warnings(reconstruction), "state": state}
 
 
-def reconstruct(root: str | Path, options: dict, annotation_file: str | None = None, progress=None):
-    """Reconstruct one sequence (no files written): (reconstruction, sequence, annotation, input state)."""
+def reconstruct(root: str | Path, options: dict, annotation_file: str | None = None, progress=None, ahead: bool = True):
+    """Reconstruct one sequence (no files written): (reconstruction, sequence, annotation, input state). ``ahead``:
+    decode the next frame on a second thread (:func:`reconstruct.pipeline.reconstruct_sequence`)."""
     from .pipeline import reconstruct_sequence
 
     sequence, annotation, _, document = prepare(root, annotation_file, options["format"])
     reconstruction = reconstruct_sequence(sequence, annotation, options["voxel_size"], progress=progress, smoothing=options["smoothing"],
-                                          include_flagged=options["include_flagged"], surface=options["surface"])
+                                          include_flagged=options["include_flagged"], surface=options["surface"], ahead=ahead)
     return reconstruction, sequence, annotation, input_state(root, options, document)
 
 
-def export(reconstruction, sequence: Sequence, annotation: Annotation, out: Path, options: dict, progress=None) -> Path:
-    """Export one reconstruction into ``out`` in ``options["format"]``; returns the index's path."""
+def export(reconstruction, sequence: Sequence, annotation: Annotation, out: Path, options: dict, progress=None, reserved: int | None = None) -> Path:
+    """Export one reconstruction into ``out`` in ``options["format"]``; returns the index's path. ``reserved``: the
+    scene number a batch reserved for it (BOP, NOCS)."""
     fmt = options["format"]
     if fmt == "bop":
         from .export_bop import export_bop
 
-        return export_bop(reconstruction, sequence, out, masks=options["masks"], progress=progress)
+        return export_bop(reconstruction, sequence, out, masks=options["masks"], progress=progress, reserved=reserved)
     if fmt == "nocs":
         from .export_nocs import export_nocs
 
-        return export_nocs(reconstruction, sequence, out, progress=progress)
+        return export_nocs(reconstruction, sequence, out, progress=progress, reserved=reserved)
     from .export import export_redwood
 
     return export_redwood(reconstruction, sequence, annotation, out, masks=options["masks"])
 
 
-def whole_unit(root: str, annotation_file: str | None, out: str, options: dict) -> dict:
-    """A REDWOOD75 unit on a worker: reconstruct and export one sequence; returns its summary."""
-    reconstruction, sequence, annotation, state = reconstruct(root, options, annotation_file)
-    path = export(reconstruction, sequence, annotation, Path(out), options)
+def reserve(out: str | Path, fmt: str, names: list[str]) -> dict[str, int]:
+    """The scene numbers of a batch's sequences ``names`` (in the command line's order), for formats that number
+    scenes; {} for REDWOOD75."""
+    if fmt == "bop":
+        from .export_bop import reserve_scene_ids
+
+        return reserve_scene_ids(out, names)
+    if fmt == "nocs":
+        from .export_nocs import reserve_scene_numbers
+
+        return reserve_scene_numbers(out, names)
+    return {}
+
+
+def whole_unit(root: str, annotation_file: str | None, out: str, options: dict, reserved: int | None = None) -> dict:
+    """A unit on a worker: reconstruct and export one sequence; returns its summary. On one thread: a batch runs a
+    unit per core, where a unit's second thread would only take turns with the other units."""
+    reconstruction, sequence, annotation, state = reconstruct(root, options, annotation_file, ahead=False)
+    path = export(reconstruction, sequence, annotation, Path(out), options, reserved=reserved)
     return summary_of(reconstruction, path, state)
-
-
-def reconstruct_step(root: str, annotation_file: str | None, options: dict) -> tuple[dict, tuple]:
-    """A BOP or NOCS unit's first step: the reconstruction, for its ordered export (:func:`export_step`)."""
-    reconstruction, _, annotation, state = reconstruct(root, options, annotation_file)
-    return {"state": state}, (reconstruction, annotation)
-
-
-def export_step(value: tuple, root: str, out: str, options: dict) -> dict:
-    """A BOP or NOCS unit's ordered second step: export the reconstruction of :func:`reconstruct_step`."""
-    reconstruction, annotation = value
-    sequence = open_sequence(root)
-    path = export(reconstruction, sequence, annotation, Path(out), options)
-    summary = summary_of(reconstruction, path, "")
-    del summary["state"]  # the first step's
-    return summary
 
 
 def order_index(out: str | Path, before: list[str], names: list[str]) -> None:
@@ -171,5 +171,4 @@ def print_warnings(summary: dict) -> None:
         tqdm.write(f"warning: {line}", file=sys.stderr)
 
 
-__all__ = ["FORMATS", "PRELOAD", "export", "export_step", "marker_path", "order_index", "prepare", "reconstruct", "reconstruct_step",
-           "sequence_name", "state_now", "whole_unit"]
+__all__ = ["FORMATS", "export", "marker_path", "order_index", "prepare", "reconstruct", "reserve", "sequence_name", "state_now", "whole_unit"]

@@ -257,6 +257,50 @@ def test_evaluate_chunks_give_the_results_of_one_loop_and_a_rerun_reuses_them(da
     assert (tmp_path / "2" / "results.json").read_bytes() == (reference / "results.json").read_bytes()
 
 
+def test_evaluate_reruns_the_chunks_whose_truth_or_options_changed(dataset, sequences, tmp_path, capsys, monkeypatch):
+    """A chunk's marker covers the truth it was predicted against: a pose edited in annotations.json, a mesh edited
+    in place (same size, same time), a predictions file cut, or another seed runs again what they touch, and the
+    results are then those of one loop over the edited dataset."""
+    from evaluate.cli import build_parser, main
+    from evaluate.config import build_config
+    from evaluate.runner import evaluate_dataset
+
+    monkeypatch.setattr("evaluate.units.CHUNK", 16)  # 48 samples: one chunk per sequence (mug_a, mug_b, mug_c)
+    truth = tmp_path / "gt"
+    shutil.copytree(dataset, truth)
+    out = tmp_path / "out"
+    common = ["--dataset", str(truth), "--frames", str(sequences[0].parent), "--method", "box", "--out", str(out), "--quiet"]
+
+    def statuses(*extra: str) -> list[str]:
+        capsys.readouterr()
+        assert main([*common, "--workers", "2", "--json", *extra]) == 0
+        return [u["status"] for u in json.loads(capsys.readouterr().out)["batch"]["units"]]
+
+    assert statuses() == ["done"] * 3
+    assert statuses() == ["skipped"] * 3
+    index = json.loads((truth / "annotations.json").read_text())
+    assert list(index) == ["mug_a", "mug_b", "mug_c"]
+    index["mug_b"]["pose_anns"][3]["position"][0] += 0.01  # the truth of one sample of the second chunk moved by 1 cm
+    (truth / "annotations.json").write_text(json.dumps(index, indent=1))
+    assert statuses() == ["skipped", "done", "skipped"]
+    loop = evaluate_dataset(build_config(build_parser().parse_args(common), {}), progress=False)  # no batch, the edited truth
+    results = json.loads((out / "results.json").read_text())["methods"]["box"]
+    assert [row["overall"] for row in results["precision"]] == [row.overall for row in loop.results[0].precision]
+    mesh = truth / "mug_c.obj"
+    info = mesh.stat()
+    text = mesh.read_text()
+    edited = text.replace("v 0.", "v 1.", 1)  # one vertex moved, the file's size kept
+    assert edited != text and len(edited) == len(text)
+    mesh.write_text(edited)
+    os.utime(mesh, ns=(info.st_atime_ns, info.st_mtime_ns))  # and its time: the content itself must count
+    assert statuses() == ["skipped", "skipped", "done"]
+    chunk = sorted((out / ".batch" / "box").glob("*.npz"))[0]
+    chunk.write_bytes(chunk.read_bytes()[:-10])  # a predictions file cut short
+    assert statuses() == ["done", "skipped", "skipped"]
+    assert statuses("--seed", "3") == ["done"] * 3  # an option that shapes the predictions
+    assert statuses("--seed", "3", "--fscore-threshold", "0.02") == ["skipped"] * 3  # one that only scores them
+
+
 # ------------------------------------------------------------------------------------------------ the runner
 
 def slow_square(x: int, delay: float) -> dict:
@@ -321,6 +365,17 @@ def test_a_marker_records_the_state_and_another_state_runs_the_unit_again(tmp_pa
     (tmp_path / "u.json").unlink()
     run_batch([unit(returns_state=False)], engine=LocalPool(1), quiet=True)  # no state in the summary: no marker
     assert not (tmp_path / "u.json").exists()
+
+
+def test_the_commands_reach_their_local_processes_start_without_the_heavy_libraries():
+    """A batch's local processes start (batch.local.start_server, importing the units' libraries on their own) before
+    the command imports anything heavy: the command lines import neither NumPy, SciPy, Open3D, trimesh nor PIL to
+    get there, so on two cores the two imports overlap."""
+    code = ("import sys, reconstruct.cli, annotate.cli, evaluate.cli, batch.local, batch.report; "
+            "print(sorted(m for m in ('numpy', 'scipy', 'open3d', 'trimesh', 'PIL') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-800:]
+    assert result.stdout.strip() == "[]"
 
 
 # ------------------------------------------------------------------------------------------------ --json

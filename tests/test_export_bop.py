@@ -467,3 +467,111 @@ def killed_exports_leave_a_whole_export(tmp_path: Path, fmt: str, kills: int, se
 @pytest.mark.slow
 def test_a_killed_bop_export_leaves_the_old_or_the_new_export_whole(tmp_path):
     assert killed_exports_leave_a_whole_export(tmp_path, "bop", kills=4)
+
+
+# ------------------------------------------------------------------------------------------------ test targets
+
+TARGET_FIELDS = {"im_id", "inst_count", "obj_id", "scene_id"}  # enumerate_test_targets.py's entry
+
+
+def test_targets_keep_the_objects_at_least_a_tenth_visible():
+    """enumerate_test_targets.py's rule: visib_fract >= min_visib_fract (0.1), images in id order."""
+    from reconstruct.export_bop import targets_bop19
+
+    infos = {"7": [{"visib_fract": 0.0999}], "3": [{"visib_fract": 0.1}], "12": [{"visib_fract": 1.0}], "0": [{"visib_fract": 0.0}]}
+    assert targets_bop19(infos, obj_id=4, scene_id=9) == [{"im_id": 3, "inst_count": 1, "obj_id": 4, "scene_id": 9},
+                                                          {"im_id": 12, "inst_count": 1, "obj_id": 4, "scene_id": 9}]
+
+
+def test_test_targets_follow_the_frames_and_objects_written(bowl, tmp_path):
+    """OUT/test_targets_bop19.json, field by field: per scene (ids ascending) and image (ids ascending), the object of
+    scene_gt.json where scene_gt_info.json says it is at least 10 % visible, as {im_id, inst_count, obj_id,
+    scene_id}; laid out as inout.save_json writes a list; a second scene adds its targets, a re-export replaces its
+    own; an existing file that is not a target list is refused in one line and kept."""
+    scene, sequence, rec, _ = bowl
+    ids = sorted(rec.poses, key=sequence.index)
+    behind = {frame: pose.copy() for frame, pose in rec.poses.items()}
+    behind[ids[2]][2, 3] = -1.0  # behind the camera: no pixel, visib_fract 0
+    hidden = Reconstruction("bowl_0003", "bowl", "y", rec.mesh, rec.extents, behind, {}, {})
+    other = Reconstruction("bowl_0004", "bowl", "y", rec.mesh, rec.extents, dict(rec.poses), {}, {})
+    out = tmp_path / "bop"
+    export_bop(hidden, sequence, out, masks=False)
+    export_bop(other, sequence, out, masks=False)
+
+    def expected() -> list[dict]:
+        index = json.loads((out / "annotations.json").read_text())
+        rows = []
+        for name in sorted(index, key=lambda n: index[n]["scene_id"]):
+            scene_id = index[name]["scene_id"]
+            root = out / "test" / f"{scene_id:06d}"
+            gts = json.loads((root / "scene_gt.json").read_text())
+            infos = json.loads((root / "scene_gt_info.json").read_text())
+            for im_id in sorted(gts, key=int):
+                for gt, info in zip(gts[im_id], infos[im_id]):
+                    if info["visib_fract"] >= 0.1:
+                        rows.append({"im_id": int(im_id), "inst_count": 1, "obj_id": gt["obj_id"], "scene_id": scene_id})
+        return rows
+
+    path = out / "test_targets_bop19.json"
+    text = path.read_text()
+    targets = json.loads(text)
+    assert text == "[\n" + ",\n".join("  " + json.dumps(t, sort_keys=True) for t in targets) + "\n]"
+    assert all(set(t) == TARGET_FIELDS and all(type(v) is int for v in t.values()) for t in targets)
+    assert targets == expected()
+    positions = [sequence.index(f) for f in ids]
+    assert [t["im_id"] for t in targets if t["scene_id"] == 1] == [p for p in positions if p != positions[2]]
+    assert [t["im_id"] for t in targets if t["scene_id"] == 2] == positions
+    assert {t["obj_id"] for t in targets if t["scene_id"] == 2} == {2}
+    export_bop(rec, sequence, out, masks=False)  # bowl_0003 again, every frame in view
+    targets = json.loads(path.read_text())
+    assert targets == expected() and [t["scene_id"] for t in targets] == [1] * len(ids) + [2] * len(ids)
+    path.write_text('{"not": "a list"}')
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".export.lock"}
+    with pytest.raises(InputError, match="test_targets_bop19.json.*not a list"):
+        export_bop(other, sequence, out, masks=False)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".export.lock"} == before
+
+
+# ------------------------------------------------------------------------------------------------ side by side
+
+def test_frames_render_before_the_lock_and_only_the_swap_waits_for_it(bowl, tmp_path):
+    """An export renders and stages every frame while another holds OUT's lock, and swaps them in once it is free;
+    a recovery run meanwhile (another export's) leaves the staging alone, as its claim is held."""
+    import threading
+    import time
+
+    from reconstruct.transaction import OutLock, recover
+
+    scene, sequence, rec, _ = bowl
+    out = tmp_path / "bop"
+    out.mkdir()
+    finished = []
+    with OutLock(out):
+        thread = threading.Thread(target=lambda: finished.append(export_bop(rec, sequence, out)), daemon=True)
+        thread.start()
+        deadline = time.monotonic() + 120
+        while not list(out.glob(".staging-*/models/pending.ply")) and time.monotonic() < deadline:  # staged last
+            time.sleep(0.02)
+        staged = sorted(p.name for p in out.glob(".staging-*/test/pending/mask_visib/*.png"))
+        assert staged == [f"{sequence.index(f):06d}_000000.png" for f in sorted(rec.poses, key=sequence.index)]
+        assert thread.is_alive() and not (out / "annotations.json").exists()
+        recover(out)
+        assert len(list(out.glob(".staging-*/test/pending/mask_visib/*.png"))) == len(staged)
+    thread.join(120)
+    assert finished and json.loads((out / "annotations.json").read_text())["bowl_0003"]["scene_id"] == 1
+    assert len(list((out / "test" / "000001" / "mask_visib").iterdir())) == len(staged)
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [".export.lock"]  # no staging, claim or journal left
+
+
+def test_a_batch_reserves_scene_numbers_in_its_order():
+    """A sequence keeps its number; the others get the least free ones in the batch's order (numbers of the index and
+    scenes on disk taken); a reserved number taken meanwhile gives way to the least free one."""
+    from reconstruct.export_index import reserve_numbers, scene_number
+
+    index = {"a": {"scene_id": 2}, "b": {"scene_id": 5}}
+    taken = {1, 2, 5}  # scene folders on disk
+    assert reserve_numbers(index, ["c", "b", "d", "e"], "scene_id", taken) == {"c": 3, "b": 5, "d": 4, "e": 6}
+    assert scene_number(index, "c", "scene_id", taken, reserved=4) == 4
+    assert scene_number({**index, "x": {"scene_id": 4}}, "c", "scene_id", taken, reserved=4) == 3
+    assert scene_number(index, "b", "scene_id", taken, reserved=9) == 5
+    assert scene_number(index, "c", "scene_id", taken, reserved=0) == 3

@@ -196,6 +196,39 @@ def test_template_turns_a_can_upright():
     assert predicted[1, 1] < 0
 
 
+def test_a_template_prepared_once_is_read_back_bit_for_bit(template_method, tmp_path):
+    """prepare_shared builds a category's template once and writes it; another method (a batch's next unit) reads it
+    instead of building it, to the same arrays and the same prediction; a file that is not a template is rebuilt
+    over, and a category without a template is left to its samples."""
+    from evaluate.methods.template import FittedTemplate
+
+    writer = TemplateMethod()
+    writer.prepare_shared(["mug", "sofa"], tmp_path)
+    written = sorted(tmp_path.iterdir())
+    assert [p.name.split("-")[0] for p in written] == ["mug"]
+    reader = TemplateMethod()
+    reader.prepare_shared(["mug"], tmp_path)
+    built, read = template_method.template("mug"), reader.template("mug")
+    for name in (*FittedTemplate.ARRAYS, "voxel"):
+        a, b = np.asarray(getattr(built, name)), np.asarray(getattr(read, name))
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+    np.testing.assert_array_equal(read.mesh.vertices, built.mesh.vertices)
+    np.testing.assert_array_equal(read.mesh.faces, built.mesh.faces)
+    rotation = frame(np.array([0.1, -0.9, 0.3]), np.array([0.5, 0.0, -1.0]))
+    depth, mask = render(builtin_template("mug"), rotation, np.array([0.01, 0.0, 0.7]))
+    one, two = template_method.inference(None, depth, mask, "mug", CAMERA), reader.inference(None, depth, mask, "mug", CAMERA)
+    for field in ("position", "orientation", "extents"):
+        np.testing.assert_array_equal(getattr(one, field), getattr(two, field))
+    np.testing.assert_array_equal(one.reconstruction.vertices, two.reconstruction.vertices)
+    written[0].write_bytes(b"not an npz")
+    again = TemplateMethod()
+    again.prepare_shared(["mug"], tmp_path)
+    assert np.array_equal(again.template("mug").distance, built.distance)
+    assert FittedTemplate.from_npz(written[0]).points.shape == built.points.shape  # written again, whole
+    with pytest.raises(ValueError, match="no template for category 'sofa'"):
+        again.template("sofa")
+
+
 # ------------------------------------------------------------------------------------ bad input
 
 

@@ -472,6 +472,18 @@ def test_box_scene_is_reconstructed_to_the_millimetre(box_scene):
     assert rec.report["frames_used"] == 30 and "carve" in calls
 
 
+def test_one_thread_gives_the_reconstruction_of_two(box_scene):
+    """A batch's unit reconstructs on one thread (ahead=False: no frame decoded and prepared ahead on a second one):
+    the same mesh, box, poses and surface labels, bit for bit."""
+    sequence, annotation = _load(box_scene)
+    two, one = reconstruct_sequence(sequence, annotation, voxel_size=0.004), reconstruct_sequence(sequence, annotation, voxel_size=0.004, ahead=False)
+    np.testing.assert_array_equal(one.mesh.vertices, two.mesh.vertices)
+    np.testing.assert_array_equal(one.mesh.faces, two.mesh.faces)
+    np.testing.assert_array_equal(one.extents, two.extents)
+    assert one.poses.keys() == two.poses.keys() and all(np.array_equal(one.poses[f], two.poses[f]) for f in one.poses)
+    np.testing.assert_array_equal(one.surface.labels, two.surface.labels)
+
+
 def test_cup_cavity_is_carved(cup_scene):
     sequence, annotation = _load(cup_scene)
     # 40 frames at 320x240 see into the cavity from a few frames only: carving alone leaves its lower part by the

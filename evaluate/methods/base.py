@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,3 +43,8 @@ class Method(ABC):
     @abstractmethod
     def inference(self, color: np.ndarray, depth: np.ndarray, mask: np.ndarray, category: str, camera: Camera) -> Prediction:
         """Estimate the pose, extents and (optionally) the shape of the masked object."""
+
+    def prepare_shared(self, categories: list[str], folder: Path) -> None:
+        """Prepare what every sample of ``categories`` shares (a category's template, ...) once for a batch: each
+        unit calls it before its samples, with the same ``folder`` to keep it in, where the first unit writes it
+        (atomically) and the later ones read it. Nothing by default."""

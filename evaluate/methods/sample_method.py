@@ -72,6 +72,12 @@ class FrameMethod(SampleMethod):
     def __init__(self, name: str, method: Method) -> None:
         self.name, self.method = name, method
 
+    def prepare_shared(self, categories: list[str], folder) -> None:
+        """The method's :meth:`~evaluate.methods.base.Method.prepare_shared` (a class of cpas_toolbox's lacks it)."""
+        prepare = getattr(self.method, "prepare_shared", None)
+        if callable(prepare):
+            prepare(categories, folder)
+
     def predict(self, sample: Sample, inputs: FrameInputs) -> Prediction:
         mask = inputs.mask
         if not mask.any():

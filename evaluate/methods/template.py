@@ -38,6 +38,8 @@ and the template mesh so scaled, in the object frame, as the reconstruction.
 
 from __future__ import annotations
 
+import hashlib
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,6 +52,7 @@ from scipy.spatial.transform import Rotation
 from evaluate.geometry import matrix_to_quat
 from sequences.annotation import SYMMETRIC_CATEGORIES  # their templates are rotationally symmetric about object y
 from sequences.camera import Camera
+from sequences.names import safe_name
 
 from .base import Method, Prediction
 from .box import check_inputs, masked_points
@@ -181,6 +184,30 @@ class FittedTemplate:
             view_centroid, view_rms, cKDTree(points),
         )
 
+    #: The arrays that make a template (the KD-tree is rebuilt from ``points``, the mesh from its two arrays).
+    ARRAYS = ("extents", "points", "normals", "coarse", "field_origin", "distance", "nearest", "view_directions", "visible",
+              "view_centroid", "view_rms")
+
+    def to_npz(self) -> bytes:
+        """The template as npz bytes (no pickles): what :meth:`from_npz` reads back to the same arrays, bit for bit."""
+        buffer = io.BytesIO()
+        np.savez(buffer, vertices=np.asarray(self.mesh.vertices), faces=np.asarray(self.mesh.faces), voxel=np.float64(self.voxel),
+                 **{name: getattr(self, name) for name in self.ARRAYS})
+        return buffer.getvalue()
+
+    @classmethod
+    def from_npz(cls, path: str | Path) -> "FittedTemplate":
+        """A template written by :meth:`to_npz`; ValueError (or OSError) when the file is not one."""
+        with np.load(path, allow_pickle=False) as data:
+            missing = [k for k in ("vertices", "faces", "voxel", *cls.ARRAYS) if k not in data.files]
+            if missing:
+                raise ValueError(f"{path}: not a prepared template (no {missing[0]})")
+            arrays = {name: data[name] for name in cls.ARRAYS}
+            mesh = trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+            voxel = float(data["voxel"])
+        fields = dict(arrays, mesh=mesh, voxel=voxel, tree=cKDTree(arrays["points"]))
+        return cls(**fields)
+
     def view_bin(self, directions: np.ndarray) -> np.ndarray:
         """Index (...) of the tabulated viewing direction closest to each object-frame direction (..., 3)."""
         return np.argmax(directions @ self.view_directions.T, axis=-1)
@@ -306,17 +333,48 @@ class TemplateMethod(Method):
             return found
         return dict(sources)
 
+    def _mesh(self, category: str) -> trimesh.Trimesh:
+        if category in self._sources:
+            return load_template(self._sources[category])
+        if category in TEMPLATE_CATEGORIES:
+            return builtin_template(category)
+        raise ValueError(f"no template for category {category!r}; give one with templates={{{category!r}: mesh}}")
+
     def template(self, category: str) -> FittedTemplate:
         """The prepared template of ``category`` (built once, then cached)."""
         if category not in self._prepared:
-            if category in self._sources:
-                mesh = load_template(self._sources[category])
-            elif category in TEMPLATE_CATEGORIES:
-                mesh = builtin_template(category)
-            else:
-                raise ValueError(f"no template for category {category!r}; give one with templates={{{category!r}: mesh}}")
-            self._prepared[category] = FittedTemplate.from_mesh(mesh)
+            self._prepared[category] = FittedTemplate.from_mesh(self._mesh(category))
         return self._prepared[category]
+
+    def prepare_shared(self, categories: list[str], folder: Path) -> None:
+        """The templates of ``categories`` (those it has), each prepared once for a batch: read from ``folder``
+        where another unit left it, else built and written there atomically. The file's name holds a fingerprint
+        of the mesh and of this module's code, so a template is never read for another."""
+        from sequences.atomic import write_bytes_atomic
+
+        code = Path(__file__).read_bytes()
+        for category in categories:
+            if category in self._prepared:
+                continue
+            try:
+                mesh = self._mesh(category)
+            except ValueError:  # no template: its samples fail with the reason, one by one
+                continue
+            digest = hashlib.sha256(code)
+            for array in (np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)):
+                digest.update(repr(array.shape).encode() + array.tobytes())
+            key = digest.hexdigest()[:16]
+            path = Path(folder) / f"{safe_name(category)}-{key}.npz"
+            try:
+                self._prepared[category] = FittedTemplate.from_npz(path)
+                continue
+            except (OSError, ValueError):  # not there yet, or unreadable: build it
+                pass
+            self._prepared[category] = FittedTemplate.from_mesh(mesh)
+            try:
+                write_bytes_atomic(path, self._prepared[category].to_npz())
+            except OSError:  # a folder that cannot be written costs time, not results
+                pass
 
     # ------------------------------------------------------------------ inference
 
