@@ -2,8 +2,8 @@
 benchmark starts in-process, and a Dask cluster started separately by its two commands (run on demand; prints
 figures).
 
-    .venv/bin/python benchmarks/bench_batch.py [--sequences 6] [--commands reconstruct track evaluate] [--repeat 1]
-        [--engines local dask separate [ray]] [--data DIR]
+    .venv/bin/python benchmarks/bench_batch.py [--sequences 6] [--commands reconstruct [reconstruct-bop] track evaluate]
+        [--repeat 1] [--engines local dask separate [ray]] [--data DIR] [--quiet-below CORES [--wait S]]
 
 Each command runs as a user runs it (a fresh process: its imports and its local processes' start count), on
 copies of the bundled sample mug (60 frames): ``reconstruct-sequence`` on SEQUENCES sequences with their true
@@ -14,9 +14,10 @@ its outputs are the same files as one local process's (reports' timings aside). 
 (``--workers N``), ``dask`` (a LocalCluster of one worker running N units at once, started before the timing), ``separate``
 (``dask scheduler`` and ``dask worker ADDRESS --nthreads N`` started as the README says, before the
 timing), ``ray`` (when Ray imports: ``ray start --head --num-cpus N``, and the same units through a Ray task per
-unit: how the engine was chosen). The machine is shared: the load average is printed before and after each
-command, and --repeat keeps the fastest of several runs. Beside the wall time, from the reports (--json): the CPU
-seconds of the units and of the command's own process, and from them the wall time on an idle machine (the
+unit: how the engine was chosen). The machine is shared: before each command the load average and the cores other work
+keeps busy then (/proc/stat over a second) are printed, --quiet-below waits for a quieter moment, and --repeat
+keeps the fastest of several runs, interleaved (a command's worker counts back to back, 1, 2 then 2, 1). Beside
+the wall time, from the reports (--json): the CPU seconds of the units and of the command's own process, and from them the wall time on an idle machine (the
 client's CPU, then the units' dealt in order to the worker free first; the local processes' server start, 2-3 s
 once, left out): on a machine other work keeps busy, what the wall time cannot show.
 
@@ -44,6 +45,7 @@ BIN = REPO / ".venv" / "bin" if (REPO / ".venv" / "bin" / "reconstruct-sequence"
 RAY = Path(sys.executable).parent / "ray"  # Ray's command, where this Python has Ray
 EVAL_FRAMES = 16
 GOAL = 1.7
+COMMANDS = ("reconstruct", "reconstruct-bop", "track", "evaluate")
 
 
 def prepare(data: Path, count: int) -> dict:
@@ -104,6 +106,33 @@ def run(argv: list[str], env: dict | None = None) -> tuple[float, float, list[fl
             batch["engine"] == "this process")
 
 
+def busy_cores(seconds: float = 1.0) -> float:
+    """The cores other work keeps busy now: from /proc/stat's counters over ``seconds`` (nothing of ours runs then);
+    NaN where there is no /proc/stat."""
+    def sample() -> tuple[int, int]:
+        fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+        return sum(fields), fields[3] + fields[4]  # all, idle + iowait (jiffies, every core)
+
+    try:
+        total0, idle0 = sample()
+        time.sleep(seconds)
+        total1, idle1 = sample()
+    except OSError:
+        return float("nan")
+    cores = os.cpu_count() or 1
+    return cores * (1.0 - (idle1 - idle0) / max(total1 - total0, 1))
+
+
+def wait_for_quiet(below: float | None, limit: float) -> float:
+    """Wait (at most ``limit`` s) until other work keeps fewer than ``below`` cores busy; returns the busy cores
+    measured last (the machine's state when the run starts)."""
+    start = time.perf_counter()
+    busy = busy_cores()
+    while below is not None and busy >= below and time.perf_counter() - start < limit:
+        busy = busy_cores(2.0)
+    return busy
+
+
 def idle_estimate(client_cpu: float, unit_cpu: list[float], workers: int, inline: bool) -> float:
     """The wall time on an idle machine from CPU times: the client's, then the units dealt in order to the worker
     free first (as the engines do). Left out: the local processes' server start (2-3 s of imports, once)."""
@@ -135,8 +164,9 @@ def digest(paths: list[Path]) -> str:
 
 def command(name: str, paths: dict, out: Path, engine_args: list[str]) -> tuple[list[str], list[Path], int]:
     """The command line, the outputs it writes, and its number of units."""
-    if name == "reconstruct":
-        return ([str(BIN / "reconstruct-sequence"), *map(str, paths["rec"]), "--out", str(out), "--quiet", *engine_args],
+    if name in ("reconstruct", "reconstruct-bop"):
+        fmt = ["--format", "bop"] if name == "reconstruct-bop" else []
+        return ([str(BIN / "reconstruct-sequence"), *map(str, paths["rec"]), "--out", str(out), "--quiet", *fmt, *engine_args],
                 [out], len(paths["rec"]))
     if name == "track":
         for root in paths["trk"]:  # from the placed boxes every time
@@ -246,7 +276,7 @@ def ray_driver() -> None:
                 return token, {"ok": False, "error": error_line(error), "seconds": 0.0, "worker": None}
 
     batch.runner.make_engine = lambda workers, cluster, preload=(), inline=False: RayPool(preload)
-    if name == "reconstruct":
+    if name in ("reconstruct", "reconstruct-bop"):
         from reconstruct.cli import main
     elif name == "track":
         from annotate.cli import main
@@ -258,10 +288,17 @@ def ray_driver() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequences", type=int, default=6, help="sequences per batch (default 6: three per worker of two)")
-    parser.add_argument("--commands", nargs="+", default=["reconstruct", "track", "evaluate"], choices=["reconstruct", "track", "evaluate"])
+    parser.add_argument("--commands", nargs="+", default=["reconstruct", "track", "evaluate"], choices=COMMANDS,
+                        help="reconstruct-bop: reconstruct-sequence --format bop (its exports render before OUT's lock)")
     parser.add_argument("--engines", nargs="+", default=["local", "dask", "separate"], choices=["local", "dask", "separate", "ray"])
     parser.add_argument("--repeat", type=int, default=1, help="runs per figure, interleaved; the fastest is kept (default 1)")
     parser.add_argument("--data", help="folder for the inputs (default: a temporary one)")
+    parser.add_argument("--quiet-below", type=float, default=None, metavar="CORES",
+                        help="before each run, wait until other work keeps fewer than CORES cores busy (default: do not wait)")
+    parser.add_argument("--wait", type=float, default=300.0, help="the longest such wait, s (default 300; then it runs anyway)")
+    parser.add_argument("--bytecode-cache", action="store_true",
+                        help="run the commands with compiled modules kept (under DATA/pycache), as a pip installation does; where "
+                             "PYTHONDONTWRITEBYTECODE is set, every process otherwise compiles the package's modules again")
     args = parser.parse_args()
     from batch.local import available_cores
 
@@ -270,41 +307,56 @@ def main() -> None:
     data = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="bench_batch_"))
     paths = prepare(data, args.sequences)
     print(f"{cores} cores; {args.sequences} sequences of the 60-frame sample per batch; evaluate: template on {2 * EVAL_FRAMES} samples; "
-          f"load {os.getloadavg()[0]:.2f}", flush=True)
+          f"load {os.getloadavg()[0]:.2f}; compiled modules {'kept in DATA/pycache' if args.bytecode_cache else 'as the environment says'} "
+          f"(PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r})", flush=True)
     times: dict[tuple, list[float]] = {}  # (command, engine, workers) -> wall times
     loads: dict[tuple, list[float]] = {}
+    busy: dict[tuple, list[float]] = {}
     starts: dict[tuple, float] = {}
     reference: dict[str, str] = {}
     same: dict[tuple, bool] = {}
     units: dict[str, int] = {}  # per command
     estimates: dict[tuple, list[float]] = {}
     cpus: dict[tuple, list[float]] = {}
-    for _ in range(args.repeat):  # the repeats interleave (1, 2, 1, 2 workers ...): a busy spell of the machine spreads over all
+
+    def measure(name: str, engine: str, workers: int, cluster, address: str | None, env: dict | None) -> None:
+        key = (name, engine, workers)
+        out = data / "out" / f"{name}-{engine}-{workers}"
+        shutil.rmtree(out, ignore_errors=True)
+        engine_args = ["--workers", str(workers)] if engine == "local" else [] if engine == "ray" else ["--cluster", address]
+        argv, outputs, units[name] = command(name, paths, out, engine_args)
+        if engine == "ray":
+            argv = [PY, __file__, "--ray-driver", address, name, *argv[1:]]
+        busy.setdefault(key, []).append(wait_for_quiet(args.quiet_below, args.wait))
+        loads.setdefault(key, []).append(os.getloadavg()[0])
+        if args.bytecode_cache:  # as an installation that keeps compiled modules runs (see --bytecode-cache)
+            env = {k: v for k, v in (env or os.environ).items() if k != "PYTHONDONTWRITEBYTECODE"}
+            env["PYTHONPYCACHEPREFIX"] = str(data / "pycache")
+        wall, client_cpu, unit_cpu, inline = run(argv, env)
+        times.setdefault(key, []).append(wall)
+        estimates.setdefault(key, []).append(idle_estimate(client_cpu, unit_cpu, workers, inline))
+        cpus.setdefault(key, []).append(sum(unit_cpu) + (0 if inline else client_cpu))
+        reference.setdefault(name, digest(outputs))
+        same[key] = same.get(key, True) and digest(outputs) == reference[name]
+        starts[key] = cluster.started if cluster is not None else 0.0
+        print(f"{name:15s} {engine:9s} {workers:2d} workers: {wall:6.1f} s (CPU {cpus[key][-1]:.1f} s, idle estimate "
+              f"{estimates[key][-1]:.1f} s); before it: load average {loads[key][-1]:.2f}, other work busy {busy[key][-1]:.2f} cores", flush=True)
+
+    for repeat in range(args.repeat):  # interleaved: a busy spell of the machine spreads over all figures
+        order = counts if repeat % 2 == 0 else counts[::-1]  # 1, 2 then 2, 1: a drift of the load cancels in the best of two
         for engine in args.engines:
-            for workers in counts:
+            if engine == "local":  # nothing to start: each command's worker counts back to back
+                for name in args.commands:
+                    for workers in order:
+                        measure(name, engine, workers, None, None, None)
+                continue
+            for workers in order:  # a cluster per worker count, started before the timing
                 cluster, address, env = start_engine(engine, workers)
                 try:
                     for name in args.commands:
-                        key = (name, engine, workers)
-                        out = data / "out" / f"{name}-{engine}-{workers}"
-                        shutil.rmtree(out, ignore_errors=True)
-                        engine_args = ["--workers", str(workers)] if engine == "local" else [] if engine == "ray" else ["--cluster", address]
-                        argv, outputs, units[name] = command(name, paths, out, engine_args)
-                        if engine == "ray":
-                            argv = [PY, __file__, "--ray-driver", address, name, *argv[1:]]
-                        loads.setdefault(key, []).append(os.getloadavg()[0])
-                        wall, client_cpu, unit_cpu, inline = run(argv, env)
-                        times.setdefault(key, []).append(wall)
-                        estimates.setdefault(key, []).append(idle_estimate(client_cpu, unit_cpu, workers, inline))
-                        cpus.setdefault(key, []).append(sum(unit_cpu) + (0 if inline else client_cpu))
-                        reference.setdefault(name, digest(outputs))
-                        same[key] = same.get(key, True) and digest(outputs) == reference[name]
-                        starts[key] = cluster.started if cluster is not None else 0.0
-                        print(f"{name:12s} {engine:9s} {workers:2d} workers: {wall:6.1f} s (CPU {cpus[key][-1]:.1f} s, idle estimate "
-                              f"{estimates[key][-1]:.1f} s); load before {loads[key][-1]:.2f}", flush=True)
+                        measure(name, engine, workers, cluster, address, env)
                 finally:
-                    if cluster is not None:
-                        cluster.close()
+                    cluster.close()
     rows = []
     for (name, engine, workers), runs in times.items():
         best = min(runs)
@@ -312,16 +364,17 @@ def main() -> None:
         key = (name, engine, workers)
         estimate = min(estimates[key])
         base_estimate = min(estimates[(name, "local", 1)]) if (name, "local", 1) in estimates else float("nan")
-        rows.append((name, engine, workers, best, 60 * units[name] / best, base / best, same[key], starts[key], min(loads[key]),
-                     min(cpus[key]), estimate, base_estimate / estimate))
+        rows.append((name, engine, workers, best, 60 * units[name] / best, base / best, same[key], starts[key],
+                     f"{min(loads[key]):.1f}-{max(loads[key]):.1f} / {min(busy[key]):.2f}-{max(busy[key]):.2f}", min(cpus[key]), estimate,
+                     base_estimate / estimate))
     rows.sort(key=lambda r: (args.commands.index(r[0]), args.engines.index(r[1]), r[2]))
     print(f"\nthe fastest of {args.repeat} run(s) each; units: sequences (evaluate: predictions)")
-    print("| command | engine | workers | wall s | units/min | speed-up vs 1 local | outputs | cluster start, s | least load before "
-          "| CPU s | idle estimate s | estimated speed-up |")
+    print("| command | engine | workers | wall s | units/min | speed-up vs 1 local | outputs | cluster start, s | before the runs: load "
+          "average / other work's busy cores | CPU s | idle estimate s | estimated speed-up |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, engine, workers, seconds, rate, speedup, identical, started, load, cpu, estimate, estimated in rows:
         print(f"| {name} | {engine} | {workers} | {seconds:.1f} | {rate:.1f} | {speedup:.2f}x | {'identical' if identical else 'DIFFER'} | "
-              f"{started:.1f} | {load:.1f} | {cpu:.1f} | {estimate:.1f} | {estimated:.2f}x |")
+              f"{started:.1f} | {load} | {cpu:.1f} | {estimate:.1f} | {estimated:.2f}x |")
     for name in args.commands:
         two = [r for r in rows if r[0] == name and r[1] == "local" and r[2] == 2]
         if two:
