@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from sequences.errors import InputError, run_cli
+from sequences.errors import run_cli
 
 from .engines import DEFAULT_ENGINE, ENGINES
 
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _track(args) -> int:
     """``--track``: one SEQ here as ever, several (or --cluster) as a batch; ``--json`` prints the report."""
-    from batch.report import json_stdout, write_json
+    from batch.report import json_report, write_json
 
     if len(args.sequences) > 1 and not args.cluster:  # the local processes' server imports while this process does
         from batch.local import start_server
@@ -81,22 +81,17 @@ def _track(args) -> int:
         start_server(TRACK_PRELOAD)
     from .track_command import run_track, run_track_batch, track_line, track_one
 
-    with json_stdout(args.json) as stdout:
-        try:
-            if len(args.sequences) > 1 or args.cluster:
-                code, report = run_track_batch(args)
-            elif not args.json:
-                return run_track(args)
-            else:
-                summary = track_one(args)
-                print(track_line(summary))  # on stderr: stdout holds the report
-                unit = {"unit": args.sequence or summary["sequence"], "status": "done", "seconds": round(summary["seconds"], 3), "error": None,
-                        **{k: v for k, v in summary.items() if k not in ("state", "seconds")}}
-                code, report = 0, {"command": "annotate --track", "engine": "this process", "done": 1, "skipped": 0, "failed": 0, "units": [unit]}
-        except InputError as error:
-            if args.json:
-                write_json({"command": "annotate --track", "error": str(error)}, stdout)
-            raise
+    with json_report("annotate --track", args.json) as stdout:
+        if len(args.sequences) > 1 or args.cluster:
+            code, report = run_track_batch(args)
+        elif not args.json:
+            return run_track(args)
+        else:
+            summary = track_one(args)
+            print(track_line(summary))  # on stderr: stdout holds the report
+            unit = {"unit": args.sequence or summary["sequence"], "status": "done", "seconds": round(summary["seconds"], 3), "error": None,
+                    **{k: v for k, v in summary.items() if k not in ("state", "seconds")}}
+            code, report = 0, {"command": "annotate --track", "engine": "this process", "done": 1, "skipped": 0, "failed": 0, "units": [unit]}
         if args.json:
             write_json(report, stdout)
         return code

@@ -13,6 +13,7 @@ import math
 import os
 import sys
 from contextlib import contextmanager, redirect_stdout
+from pathlib import Path
 from typing import Iterator, TextIO
 
 
@@ -44,6 +45,21 @@ def json_stdout(enabled: bool = True) -> Iterator[TextIO]:
             target.close()
 
 
+@contextmanager
+def json_report(command: str, enabled: bool) -> Iterator[TextIO]:
+    """:func:`json_stdout`, and where the body raises InputError (bad input), the report ``{"command", "error"}`` on
+    the real stdout before the error goes on to its one-line message."""
+    from sequences.errors import InputError
+
+    with json_stdout(enabled) as stdout:
+        try:
+            yield stdout
+        except InputError as error:
+            if enabled:
+                write_json({"command": command, "error": str(error)}, stdout)
+            raise
+
+
 def _plain(value):
     np = sys.modules.get("numpy")  # not imported here: without NumPy loaded, no value is a NumPy one
     if np is not None and isinstance(value, np.generic):
@@ -70,3 +86,22 @@ def _nan_to_none(value):
     if isinstance(value, (list, tuple)):
         return [_nan_to_none(v) for v in value]
     return value
+
+
+def output_files(top: Path) -> dict[str, bytes]:
+    """What a batch wrote under ``top`` (a folder, or one file), as runs are compared: relative path -> bytes, sorted,
+    without the batch's own bookkeeping (``.batch/``, the export lock) and with the reports' timings left out."""
+    top = Path(top)
+    files = sorted(p for p in top.rglob("*") if p.is_file()) if top.is_dir() else [top]
+    out = {}
+    for path in files:
+        rel = path.relative_to(top).as_posix() if top.is_dir() else path.name
+        if rel.startswith(".batch/") or rel == ".export.lock":
+            continue
+        data = path.read_bytes()
+        if rel.startswith("reports/") and rel.endswith(".json"):
+            report = json.loads(data)
+            report.pop("timings", None)
+            data = json.dumps(report, sort_keys=True).encode()
+        out[rel] = data
+    return out

@@ -146,18 +146,11 @@ def idle_estimate(client_cpu: float, unit_cpu: list[float], workers: int, inline
 
 def digest(paths: list[Path]) -> str:
     """One hash of the given files and folders (recursively; batch bookkeeping and the reports' timings aside)."""
+    from batch.report import output_files
+
     sha = hashlib.sha256()
     for top in paths:
-        files = sorted(p for p in Path(top).rglob("*") if p.is_file()) if Path(top).is_dir() else [Path(top)]
-        for path in files:
-            rel = path.relative_to(top).as_posix() if Path(top).is_dir() else path.name
-            if rel.startswith(".batch/") or rel == ".export.lock":
-                continue
-            data = path.read_bytes()
-            if rel.startswith("reports/") and rel.endswith(".json"):
-                report = json.loads(data)
-                report.pop("timings", None)
-                data = json.dumps(report, sort_keys=True).encode()
+        for rel, data in output_files(top).items():
             sha.update(rel.encode() + b"\0" + hashlib.sha256(data).digest())
     return sha.hexdigest()[:12]
 

@@ -61,16 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from batch.report import json_stdout, write_json
+    from batch.report import json_report
 
     args = build_parser().parse_args(argv)
-    with json_stdout(args.json) as stdout:
-        try:
-            return _main(args, stdout)
-        except InputError as error:
-            if args.json:
-                write_json({"command": "evaluate", "error": str(error)}, stdout)
-            raise
+    with json_report("evaluate", args.json) as stdout:
+        return _main(args, stdout)
 
 
 def _main(args, stdout) -> int:

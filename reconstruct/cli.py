@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from batch.report import json_stdout, write_json
+from batch.report import json_report, write_json
 from sequences.errors import EXIT_BAD_INPUT, InputError, run_cli
 
 from . import SURFACE, SURFACES
@@ -150,13 +150,8 @@ def _batch(args, out: Path, options: dict) -> tuple[list[dict], str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    with json_stdout(args.json) as stdout:
-        try:
-            return _main(args, stdout)
-        except InputError as error:
-            if args.json:
-                write_json({"command": "reconstruct-sequence", "error": str(error)}, stdout)
-            raise
+    with json_report("reconstruct-sequence", args.json) as stdout:
+        return _main(args, stdout)
 
 
 def _main(args, stdout) -> int:

@@ -22,6 +22,7 @@ import pytest
 
 from batch import Unit, run_batch
 from batch.local import LocalPool
+from batch.report import output_files
 from sequences.annotation import Annotation, FramePose, load_annotation, save_annotation
 
 REPO = Path(__file__).resolve().parents[1]
@@ -80,22 +81,6 @@ def _copies(roots: list[Path], into: Path) -> list[Path]:
     return out
 
 
-def _files(folder: Path) -> dict[str, bytes]:
-    """Every file of an export, bookkeeping aside, with the reports' timings (seconds of this run) taken out."""
-    files = {}
-    for path in sorted(folder.rglob("*")):
-        rel = path.relative_to(folder).as_posix()
-        if not path.is_file() or rel.startswith(".batch/") or rel == ".export.lock":
-            continue
-        data = path.read_bytes()
-        if rel.startswith("reports/") and rel.endswith(".json"):
-            report = json.loads(data)
-            report.pop("timings", None)
-            data = json.dumps(report, sort_keys=True).encode()
-        files[rel] = data
-    return files
-
-
 def _reconstruct(*args: str) -> int:
     from reconstruct.cli import main
 
@@ -111,7 +96,7 @@ def test_reconstruct_batch_is_the_same_for_1_and_2_workers_and_a_rerun_skips_fin
     order = [str(sequences[2]), str(sequences[0]), str(sequences[1])]
     assert _reconstruct(*order, "--out", str(one), "--workers", "1") == 0
     assert _reconstruct(*order, "--out", str(two), "--workers", "2") == 0
-    assert _files(one) == _files(two)
+    assert output_files(one) == output_files(two)
     assert list(json.loads((two / "annotations.json").read_text())) == ["mug_c", "mug_a", "mug_b"]
     assert sorted(p.name for p in (two / ".batch").iterdir()) == ["mug_a.json", "mug_b.json", "mug_c.json"]
     capsys.readouterr()
@@ -132,14 +117,14 @@ def test_reconstruct_batch_is_the_same_for_1_and_2_workers_and_a_rerun_skips_fin
     # --redo runs finished ones again, to the same files
     assert _reconstruct(str(sequences[2]), str(sequences[0]), "--out", str(one), "--redo", "--json") == 0
     assert [u["status"] for u in json.loads(capsys.readouterr().out)["units"]] == ["done", "done"]
-    assert _files(one) == _files(tmp_path / "one")
+    assert output_files(one) == output_files(tmp_path / "one")
 
 
 def test_reconstruct_batch_bop_numbers_scenes_in_command_line_order_for_any_worker_count(sequences, tmp_path):
     order = [str(sequences[1]), str(sequences[2]), str(sequences[0])]
     assert _reconstruct(*order, "--out", str(tmp_path / "one"), "--format", "bop", "--no-masks", "--workers", "1") == 0
     assert _reconstruct(*order, "--out", str(tmp_path / "two"), "--format", "bop", "--no-masks", "--workers", "2") == 0
-    assert _files(tmp_path / "one") == _files(tmp_path / "two")
+    assert output_files(tmp_path / "one") == output_files(tmp_path / "two")
     index = json.loads((tmp_path / "two" / "annotations.json").read_text())
     assert [(name, entry["scene_id"]) for name, entry in index.items()] == [("mug_b", 1), ("mug_c", 2), ("mug_a", 3)]
 
@@ -412,7 +397,7 @@ def test_a_local_dask_cluster_gives_the_outputs_of_local_processes(sequences, to
         assert _reconstruct(*map(str, sequences), "--out", str(tmp_path / "out_cluster"), "--cluster", address) == 0
     for a, b in zip(local, cluster):
         assert (a / "annotation.yaml").read_bytes() == (b / "annotation.yaml").read_bytes()
-    assert _files(tmp_path / "out_local") == _files(tmp_path / "out_cluster")
+    assert output_files(tmp_path / "out_local") == output_files(tmp_path / "out_cluster")
 
 
 def test_an_unreachable_cluster_is_one_line(sequences, tmp_path, monkeypatch):
