@@ -7,7 +7,7 @@ the parent's state as it is at the fork (frames read, models and their search gr
 it; only the items' indices go out and the results (poses, figures) come back. Each item runs the same
 code on the same inputs as in a loop, so the results are the same bit for bit whatever the count (measured:
 bench_tracking's pose dumps of the v5 sequences, seeds 0-3, with 4 manual frames and with 3 off by up to 5 deg,
-48 runs, 0 frames changed; tests/test_tracking_workers.py, test_tracking_suspects.py, test_tracking_engine.py).
+48 runs, 0 frames changed; tests/test_workers.py, test_tracking_suspects.py, test_tracking_engine.py).
 That needs Open3D on one thread in every process: on two, its normal equations sum in a varying order (one
 frame registered 30 times from the same start gave 25 different last bits).
 
