@@ -8,8 +8,8 @@ figures).
 Each command runs as a user runs it (a fresh process: its imports and its local processes' start count), on
 copies of the bundled sample mug (60 frames): ``reconstruct-sequence`` on SEQUENCES sequences with their true
 poses, ``annotate --track`` on SEQUENCES sequences with three placed boxes each (reset before every run), and
-``evaluate --method template`` on the first 16 frames of two of them. Printed per engine and worker count: the
-wall time of the command, its throughput (sequences, or evaluate's predictions, a minute), the speed-up against one local process, and whether
+``evaluate --method template`` on the first 16 frames of a third of them (at least two). Printed per engine and worker count: the
+wall time of the command, its throughput (sequences, or evaluate's predictions, a minute), the speed-up against one local process (one worker of the same engine where local was not run), and whether
 its outputs are the same files as one local process's (reports' timings aside). Engines: ``local``
 (``--workers N``), ``dask`` (a LocalCluster of one worker running N units at once, started before the timing), ``separate``
 (``dask scheduler`` and ``dask worker ADDRESS --nthreads N`` started as the README says, before the
@@ -48,6 +48,12 @@ GOAL = 1.7
 COMMANDS = ("reconstruct", "reconstruct-bop", "track", "evaluate")
 
 
+def eval_sequences(count: int) -> int:
+    """Sequences whose first EVAL_FRAMES frames ``evaluate`` reads in a batch of ``count`` sequences: a third of
+    them, at least 2 (so a unit of EVAL_FRAMES samples per worker of two, at the least)."""
+    return max(2, count // 3)
+
+
 def prepare(data: Path, count: int) -> dict:
     """The benchmark's inputs under ``data`` (made once): truth-posed and box-placed copies of the sample, a dataset."""
     import numpy as np
@@ -61,7 +67,7 @@ def prepare(data: Path, count: int) -> dict:
     truth, ids = load_truth(source), list(open_sequence(source).ids)
     paths = {"rec": [], "trk": [], "evl": []}
     for kind in paths:
-        for i in range(count if kind != "evl" else 2):
+        for i in range(count if kind != "evl" else eval_sequences(count)):
             root = data / kind / f"mug_{i}"
             paths[kind].append(root)
             if (root / "annotation.yaml").is_file():
@@ -84,7 +90,7 @@ def prepare(data: Path, count: int) -> dict:
                     document.frames[frame_id] = FramePose.from_matrix(T, "manual")
             save_annotation(document, root / "annotation.yaml", backup=False)
             shutil.copy2(root / "annotation.yaml", root / "placed.yaml")
-    dataset = data / "evl_gt"
+    dataset = data / f"evl_gt_{len(paths['evl'])}"
     if not (dataset / "annotations.json").is_file():
         run([str(BIN / "reconstruct-sequence"), *map(str, paths["evl"]), "--out", str(dataset), "--quiet"])
     paths["dataset"] = dataset
@@ -299,7 +305,7 @@ def main() -> None:
     counts = sorted({1, 2, cores})
     data = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="bench_batch_"))
     paths = prepare(data, args.sequences)
-    print(f"{cores} cores; {args.sequences} sequences of the 60-frame sample per batch; evaluate: template on {2 * EVAL_FRAMES} samples; "
+    print(f"{cores} cores; {args.sequences} sequences of the 60-frame sample per batch; evaluate: template on {EVAL_FRAMES * eval_sequences(args.sequences)} samples; "
           f"load {os.getloadavg()[0]:.2f}; compiled modules {'kept in DATA/pycache' if args.bytecode_cache else 'as the environment says'} "
           f"(PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r})", flush=True)
     times: dict[tuple, list[float]] = {}  # (command, engine, workers) -> wall times
@@ -353,16 +359,18 @@ def main() -> None:
     rows = []
     for (name, engine, workers), runs in times.items():
         best = min(runs)
-        base = min(times[(name, "local", 1)]) if (name, "local", 1) in times else float("nan")
+        # against one local process, else (local not run) against one worker of the same engine
+        reference = (name, "local", 1) if (name, "local", 1) in times else (name, engine, 1)
+        base = min(times[reference]) if reference in times else float("nan")
         key = (name, engine, workers)
         estimate = min(estimates[key])
-        base_estimate = min(estimates[(name, "local", 1)]) if (name, "local", 1) in estimates else float("nan")
+        base_estimate = min(estimates[reference]) if reference in estimates else float("nan")
         rows.append((name, engine, workers, best, 60 * units[name] / best, base / best, same[key], starts[key],
                      f"{min(loads[key]):.1f}-{max(loads[key]):.1f} / {min(busy[key]):.2f}-{max(busy[key]):.2f}", min(cpus[key]), estimate,
                      base_estimate / estimate))
     rows.sort(key=lambda r: (args.commands.index(r[0]), args.engines.index(r[1]), r[2]))
     print(f"\nthe fastest of {args.repeat} run(s) each; units: sequences (evaluate: predictions)")
-    print("| command | engine | workers | wall s | units/min | speed-up vs 1 local | outputs | cluster start, s | before the runs: load "
+    print("| command | engine | workers | wall s | units/min | speed-up vs 1 local (else 1 of the engine) | outputs | cluster start, s | before the runs: load "
           "average / other work's busy cores | CPU s | idle estimate s | estimated speed-up |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, engine, workers, seconds, rate, speedup, identical, started, load, cpu, estimate, estimated in rows:
