@@ -5,10 +5,13 @@ tangent (w, v) of the object frame:
 - registration: a frame registered to the model, a prior with the registration's information;
 - chain step: two consecutive frames of a chain, a between factor with the later frame's information;
 - anchor: a box a person placed, refined or accepted, a prior with the placement sigma;
-- motion: every chain step also holds the chain's own motion (its constant-velocity prediction where the points
-  leave a direction free) with the motion sigma, an information floor; and neighbouring frames are tied by a
-  between factor at identity ``WALK_FACTOR`` times looser (a random walk: where no chain reached, it interpolates).
-Registration and chain factors are Cauchy-robust (a frame whose points were half hand pulls at most a little).
+- motion: every three consecutive frames keep a constant velocity (the change of the object-frame motion
+  Log((T0^-1 T1)^-1 (T1^-1 T2)), the motion sigma per frame), so that where the points leave a direction free (a
+  bowl's tilt seen into its dome, a thin object edge-on) the motion on either side carries it; every chain step also
+  holds the chain's own motion with the motion sigma, an information floor; and neighbouring frames are tied by a
+  between factor at identity ``WALK_FACTOR`` times looser, which only keeps the system positive definite.
+Registration, chain and constant-velocity factors are Cauchy-robust (a frame whose points were half hand pulls at
+most a little; a regrasp jerks the motion).
 For ``symmetry: y`` the rotation about the object's y is removed from registration and chain factors: the data
 do not measure it, and the anchors and the motion alone carry it.
 
@@ -23,8 +26,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-#: the random walk between neighbouring frames is this many times looser than the motion sigma
-WALK_FACTOR = 10.0
+#: the random walk between neighbouring frames is this many times looser than the motion sigma: it keeps frames no
+#: data reach determined, and pulls a steady turn towards standing still by a negligible amount
+WALK_FACTOR = 100.0
 #: the information left on a removed direction, as a share of the largest: keeps the matrix positive definite
 REMOVED_SHARE = 1e-9
 
@@ -61,6 +65,19 @@ def sigmas(deg: float, metres: float) -> np.ndarray:
     return np.array([np.radians(deg)] * 3 + [metres] * 3)
 
 
+def _steady(factor: "gtsam.CustomFactor", values: "gtsam.Values", jacobians: list | None) -> np.ndarray:
+    """Constant velocity over three frames: Log((T0^-1 T1)^-1 (T1^-1 T2)), the change of the object-frame motion."""
+    a, b, c = (values.atPose3(key) for key in factor.keys())
+    A0, A1, B1, B2, C1, C2, L = (np.zeros((6, 6), order="F") for _ in range(7))
+    first, second = a.between(b, A0, A1), b.between(c, B1, B2)
+    error = gtsam.Pose3.Logmap(first.between(second, C1, C2), L)
+    if jacobians is not None:
+        jacobians[0] = L @ C1 @ A0
+        jacobians[1] = L @ (C1 @ A1 + C2 @ B1)
+        jacobians[2] = L @ C2 @ B2
+    return error
+
+
 @dataclass
 class Solution:
     """Solved poses (n, 4, 4) and each frame's marginal covariance (n, 6, 6), (w, v)."""
@@ -95,6 +112,9 @@ def solve(
     motion_noise = gtsam.noiseModel.Diagonal.Sigmas(WALK_FACTOR * motion_sigmas)
     for k in range(len(initial) - 1):
         graph.add(gtsam.BetweenFactorPose3(k, k + 1, gtsam.Pose3(), motion_noise))
+    velocity_noise = _noise(np.diag(1.0 / motion_sigmas**2), robust_k)
+    for k in range(1, len(initial) - 1):
+        graph.add(gtsam.CustomFactor(velocity_noise, [k - 1, k, k + 1], _steady))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(50)
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()

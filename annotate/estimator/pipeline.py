@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from annotate.engines import anchor_frames
+from evaluate.metrics.pose_errors import rotation_error
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 
@@ -134,29 +135,60 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
     return poses, steps
 
 
+def _closure(setup: _Setup, poses: dict[str, np.ndarray], order: list[str], target: np.ndarray) -> float:
+    """How far a chain, carried one frame on at its last velocity, ends from the anchor it runs into (``target``),
+    in anchor sigmas (rotation's and centre's summed; for symmetry y without the spin)."""
+    last = poses[order[-1]]
+    before = poses[order[-2]] if len(order) > 1 else last
+    predicted = (last @ np.linalg.inv(before)) @ last
+    degrees = float(rotation_error(predicted[:3, :3], target[:3, :3], "y" if setup.symmetric else "none"))
+    metres = float(np.linalg.norm(predicted[:3, 3] - target[:3, 3]))
+    return degrees / setup.config.anchor_sigma_deg + metres / setup.config.anchor_sigma_m
+
+
 def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray], done: Callable[[], None]) -> tuple[np.ndarray, list[Factor]]:
-    """Initial poses (n, 4, 4), each frame from the chain of its nearest anchor, and every chain's steps."""
+    """Initial poses (n, 4, 4) (:func:`initial_poses`) and every chain's steps."""
     ids, index = setup.ids, setup.index
     marks = [index[a] for a in anchors]
-    initial = np.empty((len(ids), 4, 4))
-    nearest = np.full(len(ids), np.inf)
-    steps: list[Factor] = []
-    jobs = []  # (anchor, its position, the frames its chain runs through)
+    jobs = []  # (anchor, its position, the frames its chain runs through, the anchor it runs into or None)
     for n, (a, mark) in enumerate(zip(anchors, marks)):
-        initial[mark], nearest[mark] = placed[a], 0
         after = ids[mark + 1 : marks[n + 1]] if n + 1 < len(marks) else ids[mark + 1 :]
         before = ids[marks[n - 1] + 1 : mark][::-1] if n > 0 else ids[:mark][::-1]
-        jobs += [(a, mark, order) for order in (after, before) if order]
+        into_after = anchors[n + 1] if n + 1 < len(marks) else None
+        into_before = anchors[n - 1] if n > 0 else None
+        jobs += [(a, mark, order, into) for order, into in ((after, into_after), (before, into_before)) if order]
     part = lambda a: _object_part(setup.crop(a, placed[a], thin=False), placed[a])
     chains = ordered_map(lambda job: _chain(setup, job[0], placed[job[0]], job[2], part(job[0]), lambda: None), jobs, setup.workers,
                          done=lambda job, _: [done() for _ in job[2]])
-    for (a, mark, _), (poses, chain_steps) in zip(jobs, chains):
+    steps: list[Factor] = []
+    runs = []
+    for (a, mark, order, into), (poses, chain_steps) in zip(jobs, chains):
         steps += chain_steps
-        for frame_id, pose in poses.items():
-            distance = abs(index[frame_id] - mark)
-            if distance < nearest[index[frame_id]]:
-                initial[index[frame_id]], nearest[index[frame_id]] = pose, distance
-    return initial, steps
+        closure = 0.0 if into is None else _closure(setup, poses, order, placed[into])
+        runs.append((mark, {index[f]: pose for f, pose in poses.items()}, closure))
+    return initial_poses(len(ids), {index[a]: placed[a] for a in anchors}, runs), steps
+
+
+def initial_poses(count: int, anchors: dict[int, np.ndarray], runs: list[tuple[int, dict[int, np.ndarray], float]]) -> np.ndarray:
+    """The graph's start (count, 4, 4): the anchors' boxes, and each other frame from one of the chains that reached it.
+
+    ``runs``: per chain its anchor's position, its poses by frame position and its closure (how far it ends from the
+    anchor it runs into, :func:`_closure`; 0 for a chain that runs to the sequence's end). A frame between two anchors
+    is reached by two chains, whose errors grow with the distance run; the closure measures that growth, so the
+    frame starts from the chain whose closure times the share of its run to the frame is the smaller (where the
+    chains close alike, the nearer anchor's). A chain that went astray (a bowl turning 9 deg a frame, its tilt lost
+    in a view into its dome) then starts none of the frames the other chain reached better."""
+    initial = np.tile(np.eye(4), (count, 1, 1))
+    expected = np.full(count, np.inf)
+    for k, pose in anchors.items():
+        initial[k], expected[k] = pose, 0.0
+    for mark, poses, closure in runs:
+        run = max(abs(k - mark) for k in poses) + 1 if poses else 1
+        for k, pose in poses.items():
+            score = (closure + 1e-6) * abs(k - mark) / run
+            if score < expected[k]:
+                initial[k], expected[k] = pose, score
+    return initial
 
 
 def common_correction(poses: np.ndarray, anchors: dict[int, np.ndarray], offsets: np.ndarray | None = None) -> np.ndarray:
