@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from batch.options import engine_problem
 from sequences.errors import run_cli
 
 from .engines import DEFAULT_ENGINE, ENGINES
@@ -50,8 +51,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--engine applies to --track only")
     if args.workers is not None and not args.track:
         parser.error("--workers applies to --track only")
-    if args.workers is not None and args.workers < 1:
-        parser.error(f"--workers must be at least 1, got {args.workers}")
+    problem = engine_problem(args.workers, args.cluster)
+    if problem:
+        parser.error(problem)
     for option in ("cluster", "redo", "json"):
         if getattr(args, option) and not args.track:
             parser.error(f"--{option} applies to --track only")
@@ -59,8 +61,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("the browser tool opens one sequence: several SEQ apply to --track only")
     if len(args.sequences) > 1 and args.annotation:
         parser.error("--annotation names one document: give a single SEQ with it")
-    if args.cluster and args.workers is not None:
-        parser.error("--workers and --cluster exclude each other: a cluster's workers are its own")
     if args.cluster and not args.sequences:
         parser.error("--cluster needs the sequence folders (SEQ...): the bundled sample lives on this machine only")
     args.sequence = args.sequences[0] if args.sequences else None

@@ -17,6 +17,7 @@ import argparse
 import os
 import sys
 
+from batch.options import engine_problem
 from sequences.errors import InputError, run_cli
 
 #: What a batch's local processes import once (batch.local's server): the methods and the datasets.
@@ -76,10 +77,9 @@ def _main(args, stdout) -> int:
     from batch.report import write_json
 
     start = time.perf_counter()
-    if args.workers is not None and args.workers < 1:
-        raise InputError("--workers", f"must be at least 1, got {args.workers}")
-    if args.workers is not None and args.cluster:
-        raise InputError("--workers", "--workers and --cluster exclude each other: a cluster's workers are its own")
+    problem = engine_problem(args.workers, args.cluster)
+    if problem:
+        raise InputError(None, problem)
     if args.seed is not None and args.seed < 0:
         raise InputError("--seed", "must be a non-negative integer")
     if not args.config:

@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+from batch.options import engine_problem
 from batch.report import json_report, write_json
 from sequences.errors import EXIT_BAD_INPUT, InputError, run_cli
 
@@ -157,10 +158,9 @@ def main(argv: list[str] | None = None) -> int:
 def _main(args, stdout) -> int:
     if args.annotation and len(args.sequences) > 1:
         raise InputError(args.annotation, "--annotation names one document: give a single SEQ with it")
-    if args.workers is not None and args.workers < 1:
-        raise InputError(None, f"--workers must be at least 1, got {args.workers}")
-    if args.workers is not None and args.cluster:
-        raise InputError(None, "--workers and --cluster exclude each other: a cluster's workers are its own")
+    problem = engine_problem(args.workers, args.cluster)
+    if problem:
+        raise InputError(None, problem)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "--out exists and is not a folder")

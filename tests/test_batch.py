@@ -363,6 +363,22 @@ def test_the_commands_reach_their_local_processes_start_without_the_heavy_librar
     assert result.stdout.strip() == "[]"
 
 
+def test_the_three_commands_refuse_bad_engine_options_in_the_same_words(tmp_path):
+    """--workers 0, and --workers with --cluster: one line on stderr, exit 2, worded alike by annotate --track,
+    reconstruct-sequence and evaluate (batch.options), before any work starts."""
+    seq = str(tmp_path / "seq")
+    commands = {"annotate": [seq, "--track"], "reconstruct": [seq, "--out", str(tmp_path / "out")],
+                "evaluate": ["--dataset", str(tmp_path / "gt"), "--method", "template", "--out", str(tmp_path / "res")]}
+    for options, wanted in ((["--workers", "0"], "--workers must be at least 1, got 0"),
+                            (["--workers", "2", "--cluster", "tcp://127.0.0.1:1"], "--workers and --cluster exclude each other")):
+        for name, argv in commands.items():
+            code = f"import sys; from {name}.cli import entry; sys.argv = ['{name}', *sys.argv[1:]]; entry()"
+            run = subprocess.run([sys.executable, "-c", code, *argv, *options], cwd=REPO, capture_output=True, text=True, timeout=120)
+            errors = [line for line in run.stderr.splitlines() if "error:" in line]  # argparse prints its usage above
+            assert run.returncode == 2, (name, run.stderr[-500:])
+            assert len(errors) == 1 and wanted in errors[0], (name, run.stderr[-500:])
+
+
 # ------------------------------------------------------------------------------------------------ --json
 
 def test_json_is_the_only_thing_on_stdout(sequences, tmp_path):
