@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from batch.options import engine_problem
 from sequences.errors import run_cli
 
 from .engines import DEFAULT_ENGINE, ENGINES
@@ -51,9 +50,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--engine applies to --track only")
     if args.workers is not None and not args.track:
         parser.error("--workers applies to --track only")
-    problem = engine_problem(args.workers, args.cluster)
-    if problem:
-        parser.error(problem)
+    if args.workers is not None or args.cluster:  # only then: the browser tool's start does not load the batch engine
+        from batch.options import engine_problem
+
+        problem = engine_problem(args.workers, args.cluster)
+        if problem:
+            parser.error(problem)
     for option in ("cluster", "redo", "json"):
         if getattr(args, option) and not args.track:
             parser.error(f"--{option} applies to --track only")

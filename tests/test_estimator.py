@@ -19,7 +19,7 @@ import gtsam
 from annotate.estimator.graph import Factor, _steady, sigmas, solve, without_spin
 from annotate.estimator.model import fuse
 from annotate.estimator.observations import Crop
-from annotate.estimator.pipeline import initial_poses
+from annotate.estimator.pipeline import _closure, initial_poses
 from annotate.estimator.registration import Model, offset, register, retract
 from sequences.annotation import Annotation, FramePose, load_annotation, save_annotation
 from sequences.reader import open_sequence
@@ -114,6 +114,24 @@ def test_each_frame_starts_from_the_chain_that_closes_better_else_the_nearer_anc
     astray = initial_poses(14, anchors, [(0, forward, 1.0), (10, backward, 30.0), (10, tail, 0.0)])[:, 0, 3]
     # the chain from 10 ended 30 sigmas off: it starts none of them, not even frame 9 (30 x 1/10 > 1 x 9/10)
     assert list(astray) == [0, 1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 3, 3, 3]
+
+
+def test_a_chains_closure_carries_its_last_velocity_one_frame_on_and_counts_in_anchor_sigmas():
+    from types import SimpleNamespace
+
+    config = EstimatorConfig()  # anchor sigmas 3 deg and 5 mm
+    setup = SimpleNamespace(config=config, symmetric=False)
+    turn = lambda deg, x=0.0: retract(np.eye(4), np.array([0, np.radians(deg), 0, x, 0, 0]))
+    start = np.eye(4)
+    # a chain turning 2 deg a frame about y over frames 1-3 predicts 8 deg at frame 4, where the anchor says 8: closes
+    poses = {"1": turn(2), "2": turn(4), "3": turn(6)}
+    assert _closure(setup, start, poses, ["1", "2", "3"], turn(8)) < 1e-6
+    # the anchor says 2 deg and 5 mm more: 2/3 + 1 sigmas
+    assert abs(_closure(setup, start, poses, ["1", "2", "3"], turn(10, 0.005)) - (2 / 3 + 1)) < 1e-6
+    # a one-frame chain takes its velocity from its own anchor's pose
+    assert _closure(setup, start, {"1": turn(2)}, ["1"], turn(4)) < 1e-6
+    # for symmetry y a spin about y is no closure error
+    assert _closure(SimpleNamespace(config=config, symmetric=True), start, poses, ["1", "2", "3"], turn(40)) < 1e-6
 
 
 def test_graph_registrations_fix_poses_and_an_outlier_is_held_by_the_robust_kernel():

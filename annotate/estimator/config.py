@@ -31,7 +31,7 @@ class EstimatorConfig:
     anchor_sigma_m: float = 0.005  #: ... and its centre, per axis (m)
     motion_sigma_deg: float = 1.5  #: change of rotational velocity expected between frames (hand-held, 30 fps)
     motion_sigma_m: float = 0.003  #: ... and of the centre's velocity (m per frame)
-    robust_k: float = 2.0  #: Cauchy kernel width of the registration factors, in their standard deviations
+    robust_k: float = 2.0  #: Cauchy kernel width of the registration, chain-step and constant-velocity factors, in their standard deviations
     rounds: int = 3  #: rounds of fusing the model of all frames and registering every frame to it, at most
     settled: tuple[float, float] = (0.05, 0.0002)  #: ... fewer once a round moved no frame more than this (deg, m)
     free_space_tolerance: float = 0.01  #: a model voxel a frame sees this far (m) beyond counts as free in that frame

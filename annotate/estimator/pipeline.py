@@ -135,11 +135,12 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
     return poses, steps
 
 
-def _closure(setup: _Setup, poses: dict[str, np.ndarray], order: list[str], target: np.ndarray) -> float:
-    """How far a chain, carried one frame on at its last velocity, ends from the anchor it runs into (``target``),
-    in anchor sigmas (rotation's and centre's summed; for symmetry y without the spin)."""
+def _closure(setup: _Setup, start: np.ndarray, poses: dict[str, np.ndarray], order: list[str], target: np.ndarray) -> float:
+    """How far a chain from the anchor at ``start`` (its pose), carried one frame on at its last velocity, ends from
+    the anchor it runs into (``target``), in anchor sigmas (rotation's and centre's summed; for symmetry y without
+    the spin)."""
     last = poses[order[-1]]
-    before = poses[order[-2]] if len(order) > 1 else last
+    before = poses[order[-2]] if len(order) > 1 else start
     predicted = (last @ np.linalg.inv(before)) @ last
     degrees = float(rotation_error(predicted[:3, :3], target[:3, :3], "y" if setup.symmetric else "none"))
     metres = float(np.linalg.norm(predicted[:3, 3] - target[:3, 3]))
@@ -164,7 +165,7 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
     runs = []
     for (a, mark, order, into), (poses, chain_steps) in zip(jobs, chains):
         steps += chain_steps
-        closure = 0.0 if into is None else _closure(setup, poses, order, placed[into])
+        closure = 0.0 if into is None else _closure(setup, placed[a], poses, order, placed[into])
         runs.append((mark, {index[f]: pose for f, pose in poses.items()}, closure))
     return initial_poses(len(ids), {index[a]: placed[a] for a in anchors}, runs), steps
 
