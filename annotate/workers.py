@@ -1,13 +1,12 @@
 """Independent tracking work spread over processes: an ordered map whose results equal a plain loop's, and a pool
 kept for small batches that a sequential pass hands out one after another (TaskPool).
 
-Tracking's per-frame work is numpy on a few thousand points at a time, which holds the GIL: two threads
-measured 15-25 % more CPU for a 12 % shorter laptop run and slower small objects. Forked processes share
+Tracking's per-frame work is numpy on a few thousand points at a time, which holds the GIL: threads cost more
+CPU than they save. Forked processes share
 the parent's state as it is at the fork (frames read, models and their search grids built) without pickling
 it; only the items' indices go out and the results (poses, figures) come back. Each item runs the same
-code on the same inputs as in a loop, so the results are the same bit for bit whatever the count (measured:
-bench_tracking's pose dumps of the v5 sequences, seeds 0-3, with 4 manual frames and with 3 off by up to 5 deg,
-48 runs, 0 frames changed; tests/test_workers.py, test_tracking_suspects.py, test_tracking_engine.py).
+code on the same inputs as in a loop, so the results are the same bit for bit whatever the count
+(tests/test_workers.py, test_tracking_suspects.py, test_tracking_engine.py).
 That needs Open3D on one thread in every process: on two, its normal equations sum in a varying order (one
 frame registered 30 times from the same start gave 25 different last bits).
 
@@ -16,7 +15,7 @@ parent (the engine's default, ``TrackingConfig.threads``; ``TrackingConfig.worke
 the setting, and neither OpenMP nor TBB promises that a thread pool survives a fork. So a map or a pool holds
 Open3D on one thread while its workers live (open3d_threads, below), whoever calls it: a worker forked from a
 process that had run Open3D on two threads (a test calling the refinement directly) hung in TBB's reduction of the
-ICP's normal equations, waiting for a thread it does not have (2 of 3 runs of the test suite on 2026-11-28).
+ICP's normal equations, waiting for a thread it does not have.
 """
 
 from __future__ import annotations
@@ -271,8 +270,7 @@ def open3d_threads(count: int) -> Iterator[None]:
     """Run the body with Open3D limited to ``count`` threads (0: leave as is), restoring the setting after.
 
     One thread makes tracking reproducible: Open3D's parallel reductions (ICP normal equations)
-    sum in a varying order, and the chains amplify those last-bit differences (measured: the same
-    mug run gave a median of 1.3 to 1.8 deg in five runs; with one thread the same figures each time).
+    sum in a varying order, and the chains amplify those last-bit differences into different poses.
 
     The setting is one per process, and the browser tool may refine a frame while a track runs on another
     thread: the lowest count of the bodies running holds until the last of them ends, and only then comes the

@@ -34,8 +34,7 @@ from .units import run_step
 
 #: Environment of the units' processes: OpenMP (Open3D, numba) and the BLAS libraries on one thread each, and
 #: glibc's default trimming of freed memory (None: unset). Dask's nanny sets MALLOC_TRIM_THRESHOLD_ to 64 kB in
-#: its workers, and the carving, which allocates and frees large arrays per frame, ran 2.1x slower there (measured:
-#: the sample's carving 3.5-3.9 s in a Dask worker, 1.8 s with the variable unset, on the 2-core machine).
+#: its workers, and the carving, which allocates and frees large arrays per frame, runs about twice as slow there.
 UNIT_ENVIRONMENT = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
                     "MALLOC_TRIM_THRESHOLD_": None}
 #: One server start at a time (a Dask worker runs several units on threads).

@@ -16,8 +16,8 @@ Missing depth that a projector shadow explains is free up to the depth the shado
 proves (:func:`shadow_free_depth`): the camera sees past the occluder there, only the projector
 does not (a hand's place behind the object's own shadow is otherwise never carved).
 
-The thresholds were measured (benchmarks/bench_reconstruct.py, see DEFAULT_MIN_FREE below; the
-synthetic figures there are from sequences.synth generator v1, seed 2; DEFAULT_SHADOWS: v4).
+The thresholds below were chosen with benchmarks/bench_reconstruct.py, from the true poses and from poses all
+off by 1 deg and 2 mm (their figures are in the commit history).
 """
 
 from __future__ import annotations
@@ -36,70 +36,41 @@ from . import pyramid
 
 #: A voxel is carved when seen free in more than k frames, k = max(DEFAULT_MIN_FREE,
 #: floor(DEFAULT_FREE_FRACTION * frames)), and (the veto) in at least DEFAULT_VETO times as many
-#: frames as saw it just behind the measured surface. Measured with tol_sigmas = 2:
-#: (a) a 100-frame 640x480 open cup (8 x 10 cm, 6 mm walls) with depth noise and a moving "hand",
-#:     without the veto:
-#:   true poses      k=0: F@5mm 1.000, volume x1.00 | k=1: 0.995, x1.13 | k=2: 0.965, x1.24 | k=4: 0.881, x1.65
-#:   1 deg / 2 mm    k=0: F@5mm 0.994, extents -3 mm | k=1: 0.988, -2 mm | k=2: 0.949, -1.5 mm | k=4: 0.886, -0.5 mm
-#:   with veto 0.5, k=1: true F@5mm 0.995, extents +2.0 mm; 1 deg / 2 mm: 0.994, +0.5 mm
-#: (b) benchmarks/bench_reconstruct.py, synthetic bottle/bowl/mug/can, 100 frames, seed 2, worst
-#:     extents error over the four categories, true poses / every pose off by 1 deg and 2 mm:
-#:   k=1, no veto (ring maximum for symmetric objects): -3.7 mm / -8.5 mm
-#:   k=2, no veto (ring share 0.5): +2.5 mm / -3.8 mm
-#:   k=1, veto 0.5: +2.8 mm / +2.5 mm (k=0 alike; veto 1.0 keeps hand remnants: +16 mm on the mug);
-#:   with DEFAULT_SETTLE = 6 (below) the perturbed mug improves to +1.4 mm
-#: Without the veto a few frames with bad poses eat the object (they see its rim free); the veto
-#: counts the frames that see those voxels inside and keeps them. Higher k fills cavities seen
-#: from few frames (a mug's inside).
+#: frames as saw it just behind the measured surface. Without the veto a few frames with bad poses
+#: eat the object (they see its rim free); the veto counts the frames that see those voxels inside
+#: and keeps them. A higher k fills cavities seen from few frames (a mug's inside) but fattens the
+#: object under pose errors; a veto of 1.0 keeps remnants of a hand.
 DEFAULT_MIN_FREE = 1
 #: Fraction of the frames that must see a voxel free before it is carved, on long sequences.
 DEFAULT_FREE_FRACTION = 0.01
 #: Free votes needed per "just behind the surface" vote (see above).
 DEFAULT_VETO = 0.5
 #: With the veto, a voxel leaves the active set and is carved for good once seen free in more than
-#: this many frames (else a hand held still for many frames would be saved by the veto). Measured
-#: on the synthetic mug and bowl (worst extents error, true / 1 deg + 2 mm poses): 10 -> mug +2.8 /
-#: +2.5 mm, bowl +1.1 / -0.4 mm; 8 -> mug +2.8 / +2.5, bowl +1.1 / -0.4; 6 -> mug +2.8 / +1.4, bowl
-#: +1.1 / -1.2; 4 -> mug +2.1 / +0.9, bowl +1.1 / -3.5 (the perturbed bowl's rim is eaten). CPU alike.
+#: this many frames (else a hand held still for many frames would be saved by the veto); fewer lets
+#: frames with pose errors eat a bowl's thin rim.
 DEFAULT_SETTLE = 6
 #: With the veto, a voxel that no frame ever saw just behind the measured surface (no evidence of
 #: the object within a tolerance of it) is carved once seen free in more than this many frames
 #: (None: no such rule). Pose errors move surfaces by a few millimetres, so the object's own voxels
 #: near any surface a frame sees collect "behind" votes; voxels in a cavity seen only through its
-#: opening from a few frames (a mug's inside) collect none. Measured (benchmarks/bench_reconstruct.py,
-#: generator v4, seeds 0-3, all four categories, true / 1 deg + 2 mm poses; F@5mm): 0 raises the
-#: seed-0 bowl from 0.831 / 0.842 to 0.890 / 0.907 and the mugs by up to 0.04 (without the evidence
-#: hull), but eats the seed-3 can's rim under pose errors (height -2.4 -> -3.5 mm); 1 changes
-#: nothing measurable. The evidence hull (reconstruct.evidence) opens the mug's unseen inside instead.
+#: opening from a few frames (a mug's inside) collect none. Off: it eats a can's rim under pose
+#: errors; the evidence hull (reconstruct.evidence) opens a mug's unseen inside instead.
 DEFAULT_UNBACKED: int | None = None
-#: Noise tolerance in depth standard deviations (plus half a voxel diagonal); measured with k above
-#: (3 sigma fattens flat faces seen head-on by ~1 mm more with no gain under pose errors).
+#: Noise tolerance in depth standard deviations (plus half a voxel diagonal): 3 sigmas fatten flat
+#: faces seen head-on with no gain under pose errors.
 DEFAULT_TOL_SIGMAS = 2.0
-#: Share of a ring (symmetry y) that must be carved for the whole ring to be carved; measured on
-#: the synthetic bottle, bowl and can: 0.1 shrinks radii by up to 2 mm under pose errors, 0.7
-#: starts to keep noise; 0.3 and 0.5 measure alike (extents within 0.6 mm) and 0.3 fills more unseen sides.
+#: Share of a ring (symmetry y) that must be carved for the whole ring to be carved: less shrinks
+#: radii under pose errors, much more keeps noise; 0.3 fills more of the sides never seen than 0.5.
 DEFAULT_CARVED_SHARE = 0.3
 #: With observation counts (revolve_occupancy's ``observed``, the default in the pipeline): the share
 #: of a ring's observed voxels that must be carved, and the least part of the ring counted as observed.
-#: Generator v5 shows every side: with 1 deg + 2 mm pose errors the whole-ring share of 0.3 let the
-#: frames whose errors see a bowl's thin rim free shrink its diameter (benchmarks/bench_reconstruct.py,
-#: seeds 0-2: -3.2 / -3.9 / -3.5 mm; bottle seed 0 -2.6, seed 3 -2.1 mm); a whole-ring share of 0.5
-#: keeps those rims but leaves +4.2 mm on a can seen from 45 deg of azimuth only
-#: (tests/test_reconstruct.py::test_symmetry_fills_the_sides_never_seen). Half of the observed voxels:
-#: bowls -3.3 / -0.6 / -0.4 mm, bottles +1.5 / +1.9 mm, and the can's unseen sides still fill. With the
-#: rings' smaller free-space margin (reconstruct.pipeline.VOXEL_MARGIN, 0.5 half diagonals) 0.6 keeps
-#: the seed-0 bowl's rim (-3.3 -> -0.9 mm; 0.6 with margin 1.0 widens the seed-0 bottle to +3.1 mm).
+#: Counting observed voxels, not the whole ring, keeps a bowl's thin rim that frames with pose errors
+#: see free, and still fills the sides of a can seen from one direction only
+#: (tests/test_reconstruct.py::test_symmetry_fills_the_sides_never_seen).
 OBSERVED_CARVED_SHARE = 0.6
 OBSERVED_FLOOR = 0.1
-#: Count projector shadows as free up to the depth their geometry proves (shadow_free_depth).
-#: Measured (benchmarks/bench_reconstruct.py, generator v4, seed 2, 100 frames, true / 1 deg + 2 mm
-#: poses): the mug's palm patch by the handle, behind the mug's own shadow in ~25 frames, went:
-#: without: extents +1.4 +2.2 +23.2 / +1.3 +2.0 +17.2 mm, F@1cm 0.962 / 0.964;
-#: filled with the occluder's depth only: z +5.2 / +3.6 mm; with the bound: -0.4 +2.2 +1.4 /
-#: -0.1 +1.1 +1.0 mm, F@1cm 0.972 / 0.972 (slack 2 / edge 1 px; with 1 / 3: +1.3 +2.2 +1.5 /
-#: +0.8 +1.3 +1.4 mm, F@1cm 0.972 / 0.973; the rest is the lower half of the mug's inside, hidden
-#: by its wall in every frame). Bottle, bowl, can: within 2.5 mm either way (seed 3: 2.7 mm; its
-#: bottle +4.1 -> +1.9 mm). ~9 ms a frame.
+#: Count projector shadows as free up to the depth their geometry proves (shadow_free_depth): a palm
+#: behind a mug's own shadow is otherwise never carved and stretches the box by centimetres. ~9 ms a frame.
 DEFAULT_SHADOWS = True
 
 
@@ -119,10 +90,8 @@ PRUNE_EVERY = 2
 #: so its shadows are bands of missing depth just left of foreground edges (see shadow_free_depth).
 PROJECTOR_BASELINE = 0.075
 #: Slack (pixels) on the width a projector shadow may have, and pixels next to the occluder's edge
-#: that get only the occluder's depth (its sub-pixel position, an edge pixel lost to dropout).
-#: Measured (benchmarks/bench_reconstruct.py, seeds 2 and 3, 1 deg + 2 mm poses): slack 2 / edge 1
-#: and 2 / 2 shrink the seed-3 can's height by 3.5 mm (rim voxels seen free through the fill), 1 / 3
-#: by 2.4 mm (2.1 without the fill); 1 / 3 keeps the mug's box as tight (figures at DEFAULT_SHADOWS).
+#: that get only the occluder's depth (its sub-pixel position, an edge pixel lost to dropout): a wider
+#: slack lets rim voxels be seen free through the fill (a can loses height).
 SHADOW_SLACK_PX = 1.0
 SHADOW_EDGE_PX = 3.0
 

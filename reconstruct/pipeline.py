@@ -50,12 +50,10 @@ class Reconstruction:
 
 
 #: Frames flagged for review (tracking's quality flags) are left out of the carving unless fewer than
-#: this many unflagged frames, or this share of the posed ones, would remain. Measured on the v5 laptop,
-#: seed 1 (78 of 100 frames flagged, their poses 10-16 mm off): the posed mesh's median F@5mm over all
-#: its frames rose from 0.04 to 0.40 (bowl seed 1, 14 flagged: 0.89 -> 0.93); unchanged elsewhere.
-#: A frame flagged only for the spin its shape leaves free (``flag_spin_only``: a mug's handle hidden) still
-#: carves: the rest of its pose is sound, and such frames see the space a hand held through the grasps
-#: before (measured: the report's mug, 3 boxes off by up to 5 deg, with them left out 10.8 cm tall, true 9.0).
+#: this many unflagged frames, or this share of the posed ones, would remain: their poses may be
+#: centimetres off and carve the object away. A frame flagged only for the spin its shape leaves free
+#: (``flag_spin_only``: a mug's handle hidden) still carves: the rest of its pose is sound, and such
+#: frames see the space a hand held through the grasps before.
 MIN_CARVE_FRAMES = 10
 MIN_CARVE_SHARE = 0.2
 
@@ -129,10 +127,8 @@ def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarra
 
 #: Half voxel diagonals added to the free-space tolerance (carving.carve's ``voxel_margin``). The half diagonal keeps
 #: a voxel whose centre lies in front of the measured surface but within reach of it; on a face seen head-on it
-#: fattens the object by about that much. Measured on the benchmark's dev split (true poses and 4 placed boxes):
-#: none lets a laptop's screen, seen edge-on, lose 25 mm of its top; a whole one fattens round rims and flat faces
-#: by 2-5 mm; half of one met the reconstruction goals on 17 of 19 sequences from the true poses and 11 of 19 from
-#: tracked ones, as a whole one for objects without symmetry did, with the larger sum of posed F-scores.
+#: fattens the object by about that much: with none a laptop's screen seen edge-on loses its top, a whole one
+#: fattens round rims and flat faces by millimetres.
 VOXEL_MARGIN = 0.5
 
 
