@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from evaluate.annotation_quality import (
     OBSERVED_TOLERANCE,
+    exterior_samples,
     mean_transform,
     observed_samples,
     pose_scores,
@@ -107,3 +108,41 @@ def test_mean_transform():
     np.testing.assert_allclose(mean[:3, :3], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(mean[:3, 3], [0.2, 0.0, 0.5])
     np.testing.assert_allclose(mean_transform([a, a, a]), a, atol=1e-12)
+
+
+def test_faces_inside_the_solid_are_not_the_surface():
+    """A body with a part joined into it (the faces inside overlap) and an open cup: the hidden faces are left out of the
+    true surface, the cup's inner bottom (seen through its opening) stays in."""
+    body = trimesh.creation.box(extents=[0.12, 0.08, 0.07])
+    barrel = trimesh.creation.cylinder(radius=0.025, height=0.06, sections=64)
+    barrel.apply_translation([0.0, 0.0, 0.045])  # from z 0.015 to 0.075: 0.04 m sticks out of the body's +z face (0.035)
+    joined = trimesh.util.concatenate([body, barrel])
+    points = trimesh.sample.sample_surface(joined, 20000, seed=3)[0]
+    depth = np.min(np.array([0.06, 0.04, 0.035]) - np.abs(points), axis=1)  # how far within the body's box (m)
+    under = np.hypot(points[:, 0], points[:, 1]) < 0.026  # the body's +z face the barrel covers, and the barrel
+    inside = (depth > 0.001) | ((np.abs(points[:, 2] - 0.035) < 1e-9) & (np.hypot(points[:, 0], points[:, 1]) < 0.024))
+    out = (depth < 1e-9) & ~under | (points[:, 2] > 0.036)  # (within 1 mm of where the barrel enters: undecided)
+    outer = exterior_samples(points, joined)
+    assert not outer[inside].any() and outer[out].all()
+    # the surface kept: every face of the body but the disc the barrel covers, and the barrel's part outside it
+    kept_area = body.area - np.pi * 0.025**2 + 2 * np.pi * 0.025 * 0.04 + np.pi * 0.025**2
+    assert outer.mean() == pytest.approx(kept_area / joined.area, abs=0.01)
+    # an open cup 8 cm wide and 9 cm deep (1 cm walls): its inner bottom lies in view of its opening
+    profile = np.array([[0.0, -0.05], [0.04, -0.05], [0.04, 0.05], [0.03, 0.05], [0.03, -0.04], [0.0, -0.04]])  # (r, z)
+    cup = trimesh.creation.revolve(profile, sections=64)
+    samples = trimesh.sample.sample_surface(cup, 20000, seed=4)[0]
+    inner_bottom = (np.abs(samples[:, 2] + 0.04) < 1e-6) & (np.hypot(samples[:, 0], samples[:, 1]) < 0.029)
+    assert inner_bottom.sum() > 100 and exterior_samples(samples, cup).all()
+
+
+def test_true_surface_leaves_out_the_hidden_faces():
+    """The observed share of a body with a part joined into it is of its outer surface: every outer face measured is 100 %."""
+    body = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    hidden = trimesh.creation.box(extents=[0.05, 0.05, 0.05])  # wholly inside: all of its faces hidden
+    joined = trimesh.util.concatenate([body, hidden])
+    turns = [(0, 0, 0), (0, 180, 0), (0, 90, 0), (0, -90, 0), (90, 0, 0), (-90, 0, 0)]
+    views = [_pose(turn, (0.0, 0.0, 0.7)) for turn in turns]
+    dense = trimesh.sample.sample_surface(body, 20000, seed=2)[0]
+    surface = true_surface(joined, [(T, dense @ T[:3, :3].T + T[:3, 3]) for T in views])
+    assert surface.observed_share == pytest.approx(1.0, abs=0.01)
+    assert np.all(np.abs(surface.index.points).max(axis=1) > 0.05 - 1e-6)  # only the body's faces are kept
