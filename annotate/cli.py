@@ -6,10 +6,7 @@ import argparse
 
 from sequences.errors import run_cli
 
-from .engines import DEFAULT_ENGINE, ENGINES
-
-#: What a batch's local processes import once (batch.local's server): the tracking engines.
-TRACK_PRELOAD = ("numpy", "scipy.spatial", "open3d", "annotate.tracking", "annotate.estimator")
+from .engines import DEFAULT_ENGINE, ENGINES, TRACK_PRELOAD
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from sequences.annotation import Annotation, FramePose
 
+#: What a batch's local processes import once (batch.local's server): the tracking engines.
+TRACK_PRELOAD = ("numpy", "scipy.spatial", "open3d", "annotate.tracking", "annotate.estimator")
 ENGINES = ("graph", "chains")
 #: the engine used unless ``--engine`` or $REDWOOD_GT_ENGINE names another
 DEFAULT_ENGINE = "chains"

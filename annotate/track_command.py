@@ -160,8 +160,7 @@ def run_track_batch(args, stdout=None) -> tuple[int, dict]:
     from batch import Unit, run_batch
     from batch.local import available_cores
 
-    from .cli import TRACK_PRELOAD
-    from .engines import engine_name
+    from .engines import TRACK_PRELOAD, engine_name
 
     sigma = _sigma(args)
     try:

@@ -18,11 +18,9 @@ import os
 import sys
 
 from batch.options import engine_problem
+from evaluate import PRELOAD
 from sequences.errors import InputError, run_cli
 
-#: What a batch's local processes import once (batch.local's server): the methods and the datasets.
-PRELOAD = ("numpy", "scipy.spatial", "trimesh", "open3d", "PIL.PngImagePlugin", "PIL.JpegImagePlugin", "evaluate.units", "evaluate.runner", "evaluate.datasets",
-           "evaluate.methods.box", "evaluate.methods.template")
 #: Method specs that are look-ups in this process (evaluate.methods.get_method): the oracle and predictions files.
 LOOKUP_SUFFIXES = (".jsonl", ".json", ".ndjson")
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from batch import Unit
 from batch.units import file_bytes, listing, sha256_text
+from evaluate import PRELOAD
 from evaluate.config import EvaluateConfig
 from sequences.atomic import write_bytes_atomic
 from sequences.errors import InputError
@@ -153,10 +154,9 @@ def categories_of(samples: list) -> list[str]:
 def _prepare(method, samples: list, folder: Path) -> None:
     """The method's :meth:`~evaluate.methods.base.Method.prepare_shared` for ``samples``' categories; a failure there
     is left to the samples (predicting them says why, one by one, as without a batch)."""
-    prepare = getattr(method, "prepare_shared", None)
-    if callable(prepare) and samples:
+    if samples:
         try:
-            prepare(categories_of(samples), folder)
+            method.prepare_shared(categories_of(samples), folder)
         except Exception:
             pass
 
@@ -259,8 +259,6 @@ def batch_predictor(config: EvaluateConfig, workers: int, cluster: str | None, r
         planned = plan(config, dataset, methods)
         _opened.clear()
         _opened[_key(config)] = (dataset, methods)  # chunks run in this process (one worker) use these, opened once
-        from evaluate.cli import PRELOAD
-
         batch = run_batch([p[0] for p in planned], workers=workers, cluster=cluster, redo=redo, desc="evaluate", noun="prediction",
                           quiet=quiet, preload=PRELOAD, inline=True, describe=lambda o: f"{o.key}: {o.summary.get('samples', '?')} predictions in {o.seconds:.1f} s")
         for (unit, index, first, last, path), outcome in zip(planned, batch.outcomes):

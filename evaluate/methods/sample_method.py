@@ -63,6 +63,10 @@ class SampleMethod(ABC):
     def predict(self, sample: Sample, inputs: FrameInputs) -> Prediction:
         """The prediction for ``sample``; raises :class:`PredictionFailure` when there is none."""
 
+    def prepare_shared(self, categories: list[str], folder) -> None:
+        """What every sample of ``categories`` shares, once for a batch (:meth:`evaluate.methods.base.Method.prepare_shared`).
+        Nothing by default."""
+
 
 class FrameMethod(SampleMethod):
     """Runs a :class:`Method` on the sample's frames and instance mask."""
