@@ -12,6 +12,7 @@ from evaluate.annotation_quality import (
     exterior_samples,
     mean_transform,
     observed_samples,
+    revolution_fscore,
     pose_scores,
     posed_fscore,
     shape_scores,
@@ -146,3 +147,15 @@ def test_true_surface_leaves_out_the_hidden_faces():
     surface = true_surface(joined, [(T, dense @ T[:3, :3].T + T[:3, 3]) for T in views])
     assert surface.observed_share == pytest.approx(1.0, abs=0.01)
     assert np.all(np.abs(surface.index.points).max(axis=1) > 0.05 - 1e-6)  # only the body's faces are kept
+
+
+def test_revolution_fscore_tells_round_shapes_from_the_others():
+    """A cylinder about y is its own turn; a square prism and a flattened cylinder (both 'symmetric' by category) are not."""
+    cylinder = trimesh.creation.cylinder(radius=0.04, height=0.1, sections=128)
+    cylinder.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # its axis along y
+    assert revolution_fscore(cylinder) > 0.99
+    square = trimesh.creation.box(extents=[0.08, 0.1, 0.08])
+    flat = cylinder.copy()
+    flat.apply_scale([1.0, 1.0, 0.5])  # 8 cm by 4 cm across
+    # a square 8 cm across turned 45 deg: its corners stand 1.7 cm out, its faces' middles 1.7 cm in
+    assert revolution_fscore(square) < 0.8 and revolution_fscore(flat) < 0.6

@@ -102,6 +102,7 @@ def test_run_suite_end_to_end(tmp_path):
     assert 0.5 < truth["observed_share_truth"] <= 1.0
     assert truth["observed_share_gap_pp"] == pytest.approx(100 * abs(truth["observed_share_reported"] - truth["observed_share_truth"]))
     assert truth["reconstruct_s_per_100"] == pytest.approx(100 * truth["reconstruct_s"] / 24)
+    assert truth["revolution_f5"] > 0.95 and "nonround_shape_f5" not in truth  # a procedural can is round
     assert truth["posed_f5"] > 0.8 and truth["shape_f5"] > 0.8  # a procedural can from its true poses
     assert tracked["rot_median_deg"] < 5 and tracked["centre_median_mm"] < 10 and tracked["ms_per_frame"] > 0
     table = (out / "README.md").read_text()
@@ -114,6 +115,7 @@ def test_goal_misses_name_the_figures_off_their_goals():
     row = {"setting": "truth", "observed_recall5": 0.97, "observed_precision5": 0.95, "measured_face_error_mm": 2.0,
            "observed_share_gap_pp": 8.1, "reconstruct_s_per_100": 12.5}
     assert goal_misses(row) == ["observed_share_gap_pp 8.1", "reconstruct_s_per_100 12.5"]
+    assert goal_misses({**row, "nonround_shape_f5": 0.85})[-1] == "nonround_shape_f5 0.85"  # a square bowl come out round
     assert goal_misses({**row, "observed_share_gap_pp": 4.9, "reconstruct_s_per_100": 9.0}) == []
     # a truth row is not judged on tracking; a tracked row is
     assert goal_misses({**row, "observed_share_gap_pp": 0.0, "reconstruct_s_per_100": 1.0, "rot_median_deg": 2.0}) == []
