@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,14 @@ def track_one(args, bar: bool = True) -> dict:
 
         root = sample_sequence()
     sequence = open_sequence(root)
-    sequence.check()  # every frame decodes and the depth scale is plausible: before any work starts
+    # every frame decodes and the depth scale is plausible before any work starts; the frames decode (the GIL let go)
+    # while the engine's modules import, and the tracker reads the depth the check decoded (Sequence keeps it)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        checked = pool.submit(sequence.check)
+        from .engines import engine_name, tracking_engine
+
+        tracking_engine(engine_name(getattr(args, "engine", None)))
+        checked.result()
     path = annotation_path(sequence.root, getattr(args, "annotation", None))
     with DocumentLock(path, "annotate --track"):  # one writer per document, from the read to the write
         return _track_locked(args, sequence, path, sigma, bar)

@@ -9,6 +9,8 @@ colour file's stem). Opening a sequence lists files only; images are read on dem
 from __future__ import annotations
 
 import re
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +28,9 @@ REDWOOD_NAME = re.compile(r"^(\d+)-(\d+)$")
 PLAUSIBLE_DEPTH = (0.1, 10.0)
 #: Default pairing tolerance: half a frame period of a 30 Hz sensor, microseconds.
 DEFAULT_PAIRING_TOLERANCE_US = 16_667
+#: Decoded depth frames a sequence keeps for the next read, at most (bytes; 128 MB, about 200 VGA frames): `check`
+#: decodes every frame before the work starts, and the work reads them again.
+DEPTH_CACHE_BYTES = 128 * 2**20
 
 
 @dataclass(frozen=True)
@@ -149,6 +154,20 @@ class Sequence:
         self._index = {f.id: i for i, f in enumerate(self.frames)}
         if len(self._index) != len(self.frames):
             raise InputError(root, "two colour files share a frame number")
+        self._new_cache()
+
+    def _new_cache(self) -> None:
+        self._decoded: OrderedDict[Path, np.ndarray] = OrderedDict()  # depth path -> read-only image, the last read last
+        self._decoded_lock = threading.Lock()  # frames are read on helper threads too (check, decoding ahead)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        del state["_decoded"], state["_decoded_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._new_cache()
 
     @classmethod
     def from_frames(cls, root: str | Path, frames: list[FrameFiles], camera: Camera, layout: str) -> "Sequence":
@@ -182,11 +201,22 @@ class Sequence:
         return read_color(self._resolve(frame).color_path, self.camera)
 
     def depth_raw(self, frame: int | str) -> np.ndarray:
-        """Depth image (H, W) uint16 in sensor units (multiply by ``camera.depth_scale`` for metres)."""
+        """Depth image (H, W) uint16 in sensor units (multiply by ``camera.depth_scale`` for metres), read-only: the
+        last DEPTH_CACHE_BYTES of decoded frames are kept for the next read."""
         path = self._resolve(frame).depth_path
+        with self._decoded_lock:
+            if path in self._decoded:
+                self._decoded.move_to_end(path)
+                return self._decoded[path]
         array = read_depth_raw(path, self.camera)
         if not array.any():
             raise InputError(path, "depth frame has no valid pixel (all zero)")
+        array.flags.writeable = False
+        with self._decoded_lock:
+            self._decoded[path] = array
+            total = sum(a.nbytes for a in self._decoded.values())
+            while total > DEPTH_CACHE_BYTES and len(self._decoded) > 1:
+                total -= self._decoded.popitem(last=False)[1].nbytes
         return array
 
     def depth(self, frame: int | str) -> np.ndarray:

@@ -204,3 +204,27 @@ def test_bad_camera_yaml(tmp_path, text, fragment):
     _assert_one_line_error(_run(root), str(root / "camera.yaml"), fragment)
     with pytest.raises(InputError):
         open_sequence(root)
+
+
+def test_decoded_depth_is_kept_read_only_within_its_budget(tmp_path, monkeypatch):
+    """`check` decodes every frame; the work's next read of a frame is that image (read-only, so no reader changes
+    it for the next), the oldest frames beyond DEPTH_CACHE_BYTES are read again, and a pickled sequence starts empty."""
+    import pickle
+
+    import sequences.reader as reader
+
+    seq = open_sequence(redwood_sequence(tmp_path / "seq", n=4))
+    seq.check()
+    first = seq.depth_raw(0)
+    assert seq.depth_raw(0) is first and not first.flags.writeable
+    with pytest.raises(ValueError):
+        first[0, 0] = 1
+    assert np.array_equal(seq.depth(0), first.astype(np.float32) * np.float32(seq.camera.depth_scale))
+    monkeypatch.setattr(reader, "DEPTH_CACHE_BYTES", 2 * first.nbytes)  # room for two frames
+    fresh = open_sequence(tmp_path / "seq")
+    images = [fresh.depth_raw(i) for i in range(4)]
+    assert fresh.depth_raw(3) is images[3] and fresh.depth_raw(2) is images[2]
+    again = fresh.depth_raw(0)
+    assert again is not images[0] and np.array_equal(again, images[0])  # read again from its file
+    copy = pickle.loads(pickle.dumps(fresh))
+    assert copy.depth_raw(1) is not images[1] and np.array_equal(copy.depth_raw(1), images[1])
