@@ -31,11 +31,12 @@ class EditingPanel:
     def __init__(self, app: "App") -> None:
         self.app = app
         gui = app.server.gui
+        document = app.state.document()
         with gui.add_folder("Box"):
-            self.category = gui.add_dropdown("Category", CATEGORIES, initial_value=app.state.annotation.category,
+            self.category = gui.add_dropdown("Category", CATEGORIES, initial_value=document.category,
                                              hint="the object's category: sets the typical box size until you size it; bottle, bowl and can also set symmetry y")
-            self.symmetry = gui.add_dropdown("Symmetry", SYMMETRIES, initial_value=app.state.annotation.symmetry, hint="y: rotationally symmetric about object +y")
-            e = app.state.annotation.extents * 1000
+            self.symmetry = gui.add_dropdown("Symmetry", SYMMETRIES, initial_value=document.symmetry, hint="y: rotationally symmetric about object +y")
+            e = document.extents * 1000
             self.extent_inputs = [
                 gui.add_number(f"{name} (mm)", initial_value=float(round(v, 1)), min=1.0, max=5000.0, step=0.5, hint=f"the box's full side along object {a}, mm")
                 for name, a, v in zip(("Width x", "Height y", "Depth z"), ("x", "y (up)", "z (front: -z)"), e)
@@ -87,7 +88,7 @@ class EditingPanel:
     def remove_pose(self) -> None:
         state = self.app.state
         frame_id = state.frame_id
-        if frame_id not in state.annotation.frames:
+        if not state.has_pose(frame_id):
             self.app.say("This frame has no pose.")
             return
         state.edit(lambda doc: doc.frames.pop(frame_id, None))
@@ -112,7 +113,7 @@ class EditingPanel:
         see the object from more sides than one frame does.
         """
         app = self.app
-        if app.state.annotation.symmetry != "y":
+        if app.state.document().symmetry != "y":
             app.say("Snap upright is for symmetric categories (symmetry y).")
             return
         position, orientation, extents, _ = self._box()
@@ -125,8 +126,7 @@ class EditingPanel:
             from .app_model import accumulate_model
 
             cloud = frame_points(app.sequence, app.state.frame, box=(position, orientation, extents), margin=0.005)
-            with app.state.lock:
-                document = app.state.annotation.copy()
+            document = app.state.document()
             model, _ = accumulate_model(app.sequence, document)
             R = quat_to_matrix(orientation)
             points = np.vstack([cloud.points, model @ R.T + position])
@@ -153,7 +153,7 @@ class EditingPanel:
     def _on_extent(self, axis: int, value_mm: float) -> None:
         if self.app.is_syncing:
             return
-        extents = self.app.state.annotation.extents.copy()
+        extents = self.app.state.document().extents
         value = float(value_mm) / 1000.0
         if not np.isfinite(value) or value <= 0 or abs(value - extents[axis]) < 1e-7:
             return

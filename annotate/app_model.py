@@ -116,8 +116,7 @@ class ModelPanel:
                     self._model_running = False
                     return
                 self._model_dirty = False
-            with app.state.lock:
-                document = app.state.annotation.copy()
+            document = app.state.document()
             try:
                 points, colors = accumulate_model(app.sequence, document)
             except Exception as error:  # a bad frame must not end the session
@@ -134,7 +133,7 @@ class ModelPanel:
         if self.busy:
             self.app.say("A reconstruction is already running.")
             return False
-        if not self.app.state.annotation.frames:
+        if not self.app.state.document().frames:
             self.app.say("Place a box in some frames first.")
             return False
         self.progress.value = 0.0
@@ -160,8 +159,7 @@ class ModelPanel:
 
     def _preview(self) -> str:
         pipeline, _ = reconstruct_module()
-        with self.app.state.lock:
-            document = self.app.state.annotation.copy()
+        document = self.app.state.document()
         rec = pipeline.reconstruct_sequence(self.app.sequence, document, voxel_size=PREVIEW_VOXEL, progress=self._progress)
         # the mesh is centred on its tight box; the box node is the annotated object frame
         vertices = np.asarray(rec.mesh.vertices) + np.asarray(getattr(rec, "centre_shift", np.zeros(3)))
@@ -185,8 +183,7 @@ class ModelPanel:
 
     def _export(self) -> str:
         pipeline, export = reconstruct_module()
-        with self.app.state.lock:
-            document = self.app.state.annotation.copy()
+        document = self.app.state.document()
         out = Path(str(self.out_dir.value)).expanduser()
         flagged = sum(1 for pose in document.frames.values() if is_flagged(pose))
         rec = pipeline.reconstruct_sequence(self.app.sequence, document, progress=self._progress)

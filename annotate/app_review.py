@@ -179,7 +179,7 @@ class ReviewPanel:
         """Mark the current frame's pose as reviewed and right (its flag is cleared)."""
         state = self.app.state
         frame_id = state.frame_id
-        if frame_id not in state.annotation.frames:
+        if not state.has_pose(frame_id):
             self.app.say("This frame has no pose to accept.")
             return
 
@@ -194,7 +194,7 @@ class ReviewPanel:
         """Remove the current frame's pose (tracked wrongly); place or track it again."""
         state = self.app.state
         frame_id = state.frame_id
-        if frame_id not in state.annotation.frames:
+        if not state.has_pose(frame_id):
             self.app.say("This frame has no pose to reject.")
             return
         state.edit(lambda doc: doc.frames.pop(frame_id, None))

@@ -231,6 +231,16 @@ class AppState:
                 return None
             return point.copy()
 
+    def document(self) -> Annotation:
+        """A copy of the document, read under the lock: what a panel works on while another tab may edit."""
+        with self.lock:
+            return self.annotation.copy()
+
+    def has_pose(self, frame_id: str | None = None) -> bool:
+        """Whether ``frame_id`` (default: the current frame) has a box, read under the lock."""
+        with self.lock:
+            return (self.frame_id if frame_id is None else frame_id) in self.annotation.frames
+
     # --- changes ---------------------------------------------------------------------------
     def edit(self, change: Callable[[Annotation], None]) -> None:
         """Apply ``change`` to the document as one undoable step, save it, redraw."""

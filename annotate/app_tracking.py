@@ -163,8 +163,7 @@ class TrackingPanel:
             app.say("Tracking is already running.")
             return False
         ids = self.range_ids(first, last)
-        with app.state.lock:
-            document = app.state.annotation.copy()
+        document = app.state.document()
         kept = anchors(document, ids)
         if not kept:
             app.say("Tracking needs a box a person placed, refined or accepted in the range: place one first.")
@@ -213,8 +212,7 @@ class TrackingPanel:
 
         all_ids = app.sequence.ids
         app.state.edit(change)
-        with app.state.lock:
-            after = app.state.annotation.copy()
+        after = app.state.document()
         changed, new = pose_changes(document, after, taken, all_ids)
         flagged = sum(1 for f in taken if is_flagged(after.frames[f]))
         skipped = len(ids) - len(taken) - sum(1 for f in ids if f not in result.frames)

@@ -212,3 +212,27 @@ def test_a_kill_during_saves_leaves_a_valid_document_and_backup(seq):
     backup = load_annotation(path.with_name(path.name + ".bak"))
     x, x_backup = document.frames["0000001"].position[0], backup.frames["0000001"].position[0]
     assert x >= 0.005 and x_backup >= 0.004 and x_backup <= x
+
+
+def test_panels_read_a_copy_of_the_document_under_the_lock(seq):
+    """document() is a copy taken under the state's lock (a panel's edits to it change nothing); has_pose follows
+    the frames; a read waits while another thread holds the lock (an edit in progress)."""
+    import threading
+
+    state = AppState(seq)
+    assert not state.has_pose() and not state.has_pose(seq.ids[1])
+    state.set_pose([0.0, 0.0, 0.6], [0.0, 0.0, 0.0, 1.0])
+    assert state.has_pose() and state.has_pose(seq.ids[0]) and not state.has_pose(seq.ids[1])
+    copy = state.document()
+    copy.frames.clear()
+    copy.extents[:] = 1.0
+    assert state.has_pose() and not np.allclose(state.annotation.extents, 1.0)
+    held, read = threading.Event(), []
+    with state.lock:
+        reader = threading.Thread(target=lambda: (held.set(), read.append(state.document())))
+        reader.start()
+        held.wait()
+        reader.join(0.2)
+        assert reader.is_alive() and not read  # blocked until the lock is let go
+    reader.join(2.0)
+    assert len(read) == 1 and set(read[0].frames) == {seq.ids[0]}
