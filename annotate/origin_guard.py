@@ -8,7 +8,9 @@ call so that it passes ``origins``: the tool's own addresses on the bound port (
 names and addresses when bound beyond loopback), and no Origin at all (a script, not a browser).
 
 Bound beyond loopback, anyone on the network could open the page itself. :func:`require_token` makes a random
-token for a bind address, as Jupyter does; the server then answers a request (the page, its files, the websocket
+token for a bind address, as Jupyter does, and keeps it in the user's cache (``tokens/`` under
+``sequences.sample.cache_dir()``, readable by the user only), so a restarted server takes the same one and an open
+tab reconnects; delete the file to make a new one. The server then answers a request (the page, its files, the websocket
 handshake) only when it carries the token: ``?token=...`` in its URL, or the cookie the page's answer sets (viser's
 client builds its websocket URL from the page's without the query, and a browser sends the cookie with the
 handshake). The cookie is ``HttpOnly`` and ``SameSite=Strict``, named after the port, as cookies are per host.
@@ -20,9 +22,12 @@ import hmac
 import http
 import inspect
 import ipaddress
+import os
 import re
 import secrets
 import socket
+import tempfile
+from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
@@ -64,8 +69,40 @@ def own_origins(host: str, port: int) -> list:
 
 
 def require_token(host: str) -> str:
-    """The token every server this process binds on ``host`` requires from now on (made once per host)."""
-    return _tokens.setdefault(host or "", secrets.token_urlsafe(24))
+    """The token every server this process binds on ``host`` requires from now on: the one kept for ``host`` (see the
+    module notes), else a new one, kept."""
+    host = host or ""
+    if host not in _tokens:
+        _tokens[host] = _kept_token(host)
+    return _tokens[host]
+
+
+def token_file(host: str) -> Path:
+    """Where the token of bind address ``host`` is kept."""
+    from sequences.sample import cache_dir
+
+    return cache_dir() / "tokens" / f"{re.sub(r'[^A-Za-z0-9._-]', '_', host) or 'all'}.token"
+
+
+def _kept_token(host: str) -> str:
+    """The token kept for ``host``, or a new one written (mode 0600, to a temporary name and renamed)."""
+    path = token_file(host)
+    try:
+        kept = path.read_text().strip()
+        if re.fullmatch(r"[A-Za-z0-9_-]{32,}", kept):
+            return kept
+    except (OSError, UnicodeDecodeError):
+        pass
+    token = secrets.token_urlsafe(24)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)  # mode 0600
+        with os.fdopen(fd, "w") as handle:
+            handle.write(token + "\n")
+        os.replace(temporary, path)
+    except OSError:  # a cache that cannot be written: the token lives as long as this process
+        pass
+    return token
 
 
 def cookie_name(port: int) -> str:

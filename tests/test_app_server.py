@@ -142,3 +142,24 @@ def test_a_taken_port_is_refused_not_moved(monkeypatch):
         with pytest.raises(InputError, match=f"port {port} on 127.0.0.1 is in use"):
             app_serve.start_server("127.0.0.1", port)
     assert app_serve.port_is_free("127.0.0.1", port)
+
+
+def test_the_token_is_kept_for_the_next_server(tmp_path, monkeypatch):
+    """A restarted server (a new process: the tokens it made are gone) takes the kept token, so an open tab's cookie
+    still opens it; the file is the user's alone; a damaged file gives a new token, kept in its place."""
+    import stat
+
+    from annotate import origin_guard
+
+    monkeypatch.setenv("REDWOOD_GT_CACHE", str(tmp_path))
+    monkeypatch.setattr(origin_guard, "_tokens", {})
+    first = require_token("0.0.0.0")
+    path = origin_guard.token_file("0.0.0.0")
+    assert path.read_text().strip() == first and stat.S_IMODE(path.stat().st_mode) == 0o600
+    monkeypatch.setattr(origin_guard, "_tokens", {})  # the next process
+    assert require_token("0.0.0.0") == first
+    assert require_token("192.168.1.5") != first  # one per bind address
+    path.write_text("short\n")
+    monkeypatch.setattr(origin_guard, "_tokens", {})
+    renewed = require_token("0.0.0.0")
+    assert renewed != first and len(renewed) >= 32 and path.read_text().strip() == renewed
