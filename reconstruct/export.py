@@ -14,9 +14,11 @@ replaced, the rest kept):
   ``OUT/reports/<sequence>.ply``: the mesh (ShapeNet axes) coloured by what was seen (:mod:`reconstruct.seen`:
   grey observed, blue inferred from symmetry, orange unseen), the shares and the box faces in the report.
 
-A sequence's files are written as one unit (:mod:`reconstruct.transaction`): staged beside OUT, swapped in
+A sequence's files are written as one unit (:mod:`reconstruct.transaction`, through
+:func:`reconstruct.export_index.export_unit` as the BOP and NOCS exports are): staged beside OUT, swapped in
 by renames with the previous files kept until ``annotations.json``, written last, commits them; a killed
-export is rolled back (or finished) by the next export into OUT. Every path is built from plain names and
+export is rolled back (or finished) by the next export into OUT. A folder that holds another format's export is
+refused. Every path is built from plain names and
 checked to stay inside OUT (:mod:`sequences.names`).
 """
 
@@ -29,19 +31,14 @@ import trimesh
 
 from evaluate.geometry import matrix_to_quat, shapenet_to_raw_extents, shapenet_to_raw_points, shapenet_to_raw_pose
 from sequences.annotation import Annotation
-from sequences.documents import parse_json
-from sequences.errors import InputError
 from sequences.names import check_name
 from sequences.reader import Sequence
 
+from .export_index import export_unit
 from .masks import mask_png_bytes, render_masks
 from .pipeline import Reconstruction
 from .report import preview_png_bytes, report_json
 from .seen import coloured_ply
-from .transaction import ExportTransaction, OutLock, recover
-
-ANNOTATIONS = "annotations.json"
-
 
 def raw_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """The mesh in REDWOOD75's raw axes (a proper rotation: the winding stays outward)."""
@@ -75,66 +72,37 @@ def sequence_entry(reconstruction: Reconstruction, sequence: Sequence) -> dict:
     }
 
 
-def read_annotations(path: Path) -> dict:
-    """An existing ``annotations.json`` (empty when absent); raises InputError when it is not one."""
-    if not path.exists():
-        return {}
-    try:
-        data = parse_json(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as error:
-        raise InputError(path, f"existing annotations file is unreadable ({' '.join(str(error).split())}); not overwriting it") from error
-    if not isinstance(data, dict):
-        raise InputError(path, "existing annotations file is not a mapping of sequences; not overwriting it")
-    return data
-
-
 def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotation: Annotation, out_dir: str | Path, masks: bool = True) -> Path:
     """Write one reconstruction into ``out_dir`` (see the module docstring); returns ``annotations.json``'s path.
 
-    Everything is computed and staged first (masks rendered, existing ``annotations.json`` read and checked),
-    then swapped in as one unit under OUT's lock; a failure or a kill leaves ``out_dir``'s previous export whole.
+    One unit of :func:`reconstruct.export_index.export_unit`: everything is rendered and staged without OUT's lock
+    (a broken ``annotations.json``, or a folder of another format, is refused first), then swapped in under it with
+    ``annotations.json`` last; the sequence's mask folder is swapped whole (a re-export with fewer frames leaves
+    none of the old masks). A failure or a kill leaves ``out_dir``'s previous export whole.
     """
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(out_dir, "output path exists and is not a folder")
     name = check_name(reconstruction.sequence, "sequence name", out_dir)
-    annotations_path = out_dir / ANNOTATIONS
-    read_annotations(annotations_path)  # refuse a broken annotations.json before any work
-    entry = sequence_entry(reconstruction, sequence)
-    obj = obj_text(raw_mesh(reconstruction.mesh), name)
-    mask_files: dict[str, bytes] = {}
-    frame_masks: dict[str, np.ndarray] = {}
-    if masks:
-        frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
-        mask_files = {f"{check_name(frame_id, 'frame id', out_dir)}.png": mask_png_bytes(m) for frame_id, m in frame_masks.items()}
-    report = dict(reconstruction.report)
-    report["masks"] = f"masks/{name}/" if masks else None
-    report["mesh_file"] = f"{name}.obj"
-    if sequence.camera.K.tolist() != [[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]]:
-        report["warning"] = "camera differs from REDWOOD75's (fx = fy = 525, cx = 319.5, cy = 239.5), which cpas_toolbox assumes"
-    preview = preview_png_bytes(reconstruction, sequence, frame_masks)
 
-    transaction = ExportTransaction(out_dir, name)  # staged without OUT's lock: other exports swap meanwhile
-    try:
-        for file_name, data in mask_files.items():
-            transaction.stage(f"masks/{name}/{file_name}", data)
-        transaction.stage(entry["mesh"], obj.encode("utf-8"))
-        transaction.stage(f"reports/{name}.json", report_json(report).encode("utf-8"))
-        transaction.stage(f"reports/{name}.png", preview)
+    def prepare(stage) -> dict:
+        entry = sequence_entry(reconstruction, sequence)
+        frame_masks: dict[str, np.ndarray] = {}
+        if masks:
+            frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
+            for frame_id, mask in frame_masks.items():
+                stage(f"masks/{name}/{check_name(frame_id, 'frame id', out_dir)}.png", mask_png_bytes(mask))
+        report = dict(reconstruction.report)
+        report["masks"] = f"masks/{name}/" if masks else None
+        report["mesh_file"] = f"{name}.obj"
+        if sequence.camera.K.tolist() != [[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]]:
+            report["warning"] = "camera differs from REDWOOD75's (fx = fy = 525, cx = 319.5, cy = 239.5), which cpas_toolbox assumes"
+        stage(entry["mesh"], obj_text(raw_mesh(reconstruction.mesh), name).encode("utf-8"))
+        stage(f"reports/{name}.json", report_json(report).encode("utf-8"))
+        stage(f"reports/{name}.png", preview_png_bytes(reconstruction, sequence, frame_masks))
         if reconstruction.surface is not None:  # what was seen: grey observed, blue inferred, orange unseen
-            transaction.stage(f"reports/{name}.ply", coloured_ply(reconstruction.mesh, reconstruction.surface))
-    except BaseException:
-        transaction.abort()
-        raise
-    with OutLock(out_dir):
-        try:
-            recover(out_dir)
-            # read under the lock: another sequence may have been added meanwhile
-            merged = read_annotations(annotations_path)
-            merged[name] = entry
-            transaction.commit(merged)
-        except BaseException:
-            transaction.abort()
-            recover(out_dir)  # a failed swap is rolled back now, not at the next run
-            raise
-    return annotations_path
+            stage(f"reports/{name}.ply", coloured_ply(reconstruction.mesh, reconstruction.surface))
+        return entry
+
+    def finish(index: dict, transaction, entry: dict) -> tuple[dict, list[str], list[str]]:
+        return entry, [f"masks/{name}"], []
+
+    return export_unit(out_dir, reconstruction.sequence, "redwood75", prepare, finish)

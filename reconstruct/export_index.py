@@ -1,4 +1,4 @@
-"""What the BOP and NOCS exports share: the index of the sequences an export folder holds, and the staged swap.
+"""What the exports share: the index of the sequences an export folder holds, and the staged swap.
 
 Every export into ``OUT`` is one :class:`reconstruct.transaction.ExportTransaction`, whose commit point is
 ``OUT/annotations.json``. For REDWOOD75 that file is the format's own; for BOP and NOCS, whose formats name
@@ -143,7 +143,8 @@ def export_unit(out: str | Path, sequence: str, fmt: str, prepare: Prepare, fini
                 if unit not in grouped:
                     grouped.append(unit)
             transaction.targets[:] = grouped
-            index[name] = {"format": fmt, **entry}
+            # REDWOOD75's index is the format's own file, whose entries name no format
+            index[name] = entry if fmt == FORMATS[0] else {"format": fmt, **entry}
             transaction.commit(index)
         except BaseException:
             transaction.abort()

@@ -141,3 +141,26 @@ def test_cli_several_sequences_one_failing(exported, tmp_path, capsys):
     assert main([str(scene.root), "--out", str(out), "--voxel-size", "0.003", "--no-masks"]) == 0
     with pytest.raises(InputError, match="single SEQ"):
         main([str(scene.root), str(broken), "--annotation", str(broken / "annotation.yaml"), "--out", str(out)])
+
+
+def test_a_reexport_swaps_the_mask_folder_whole_and_another_format_is_refused(exported, tmp_path):
+    """Exporting the sequence again with fewer frames leaves none of the old masks; a folder that holds a BOP export
+    refuses a REDWOOD75 one (the formats are never mixed), untouched."""
+    import dataclasses
+
+    scene, sequence, rec, out, path = exported
+    annotation = load_annotation(scene.root / "annotation.yaml")
+    target = tmp_path / "again"
+    export_redwood(rec, sequence, annotation, target)
+    masks = target / "masks" / rec.sequence
+    assert len(list(masks.iterdir())) == len(rec.poses) == 16
+    kept = sorted(rec.poses, key=sequence.index)[:3]
+    export_redwood(dataclasses.replace(rec, poses={f: rec.poses[f] for f in kept}), sequence, annotation, target)
+    assert sorted(p.name for p in masks.iterdir()) == sorted(f"{f}.png" for f in kept)
+    assert len(json.loads((target / "annotations.json").read_text())[rec.sequence]["pose_anns"]) == 3
+    bop = tmp_path / "bop"
+    (bop / "models").mkdir(parents=True)
+    (bop / "models" / "models_info.json").write_text("{}")
+    with pytest.raises(InputError, match="bop export"):
+        export_redwood(rec, sequence, annotation, bop)
+    assert sorted(p.name for p in bop.iterdir()) == ["models"]
