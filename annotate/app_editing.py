@@ -153,12 +153,10 @@ class EditingPanel:
     def _on_extent(self, axis: int, value_mm: float) -> None:
         if self.app.is_syncing:
             return
-        extents = self.app.state.document().extents
         value = float(value_mm) / 1000.0
-        if not np.isfinite(value) or value <= 0 or abs(value - extents[axis]) < 1e-7:
+        if not np.isfinite(value) or value <= 0 or abs(value - self.app.state.document().extents[axis]) < 1e-7:
             return
-        extents[axis] = value
-        self.app.state.set_extents(extents)
+        self.app.state.set_extent(axis, value)
 
     def _on_face_box(self, event) -> None:
         self.app.scene.show_faces = bool(event.target.value)

@@ -184,9 +184,10 @@ class ReviewPanel:
             return
 
         def change(doc) -> None:
-            pose = doc.frames[frame_id]
-            pose.extra.pop("flagged", None)
-            pose.extra["reviewed"] = "accepted"
+            pose = doc.frames.get(frame_id)  # another tab may have removed it since
+            if pose is not None:
+                pose.extra.pop("flagged", None)
+                pose.extra["reviewed"] = "accepted"
 
         state.edit(change)
 

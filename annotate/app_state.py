@@ -289,6 +289,18 @@ class AppState:
 
         self.edit(change)
 
+    def set_extent(self, axis: int, value: float) -> None:
+        """Set one side of the box (metres) as one undoable change; the other sides stay as they are in the document
+        then (another tab may have changed them)."""
+        if axis not in (0, 1, 2) or not (np.isfinite(value) and value > 0):
+            raise ValueError(f"extent {axis} must be a positive number, got {value}")
+
+        def change(doc: Annotation) -> None:
+            doc.extents = doc.extents.copy()
+            doc.extents[axis] = float(value)
+
+        self.edit(change)
+
     def _restore(self, source: list[Annotation], target: list[Annotation]) -> bool:
         with self.lock:
             if not source:

@@ -85,24 +85,48 @@ def token_file(host: str) -> Path:
 
 
 def _kept_token(host: str) -> str:
-    """The token kept for ``host``, or a new one written (mode 0600, to a temporary name and renamed)."""
+    """The token kept for ``host`` (a file of this user's, mode 0600), or a new one kept: written to a temporary name
+    and linked into place, so of two servers starting at once the second takes the first's."""
     path = token_file(host)
-    try:
-        kept = path.read_text().strip()
-        if re.fullmatch(r"[A-Za-z0-9_-]{32,}", kept):
-            return kept
-    except (OSError, UnicodeDecodeError):
-        pass
+    kept = _read_token(path)
+    if kept is not None:
+        return kept
     token = secrets.token_urlsafe(24)
+    temporary = None
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)  # mode 0600
         with os.fdopen(fd, "w") as handle:
             handle.write(token + "\n")
-        os.replace(temporary, path)
+        if path.exists():  # damaged or not this user's alone: replaced
+            os.replace(temporary, path)
+            temporary = None
+        else:
+            try:
+                os.link(temporary, path)  # fails where another server kept one meanwhile: take that one
+            except FileExistsError:
+                return _read_token(path) or token
     except OSError:  # a cache that cannot be written: the token lives as long as this process
         pass
+    finally:
+        if temporary is not None:
+            try:
+                os.unlink(temporary)
+            except OSError:
+                pass
     return token
+
+
+def _read_token(path: Path) -> str | None:
+    """The token in ``path`` where it is one and the file is this user's alone (owner, mode 0600), else None."""
+    try:
+        info = path.stat()
+        if info.st_uid != os.getuid() or info.st_mode & 0o077:
+            return None
+        kept = path.read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    return kept if re.fullmatch(r"[A-Za-z0-9_-]{32,}", kept) else None
 
 
 def cookie_name(port: int) -> str:

@@ -62,10 +62,16 @@ def track_one(args, bar: bool = True) -> dict:
     # while the engine's modules import, and the tracker reads the depth the check decoded (Sequence keeps it)
     with ThreadPoolExecutor(max_workers=1) as pool:
         checked = pool.submit(sequence.check)
-        from .engines import engine_name, tracking_engine
+        try:
+            from .engines import engine_name, tracking_engine
 
-        tracking_engine(engine_name(getattr(args, "engine", None)))
-        checked.result()
+            tracking_engine(engine_name(getattr(args, "engine", None)))
+            problem = None
+        except ValueError as error:  # an unknown engine ($REDWOOD_GT_ENGINE)
+            problem = InputError(None, str(error))
+        checked.result()  # a bad frame is said first
+        if problem is not None:
+            raise problem
     path = annotation_path(sequence.root, getattr(args, "annotation", None))
     with DocumentLock(path, "annotate --track"):  # one writer per document, from the read to the write
         return _track_locked(args, sequence, path, sigma, bar)

@@ -40,6 +40,7 @@ from .pipeline import Reconstruction
 from .report import preview_png_bytes, report_json
 from .seen import coloured_ply
 
+
 def raw_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """The mesh in REDWOOD75's raw axes (a proper rotation: the winding stays outward)."""
     return trimesh.Trimesh(shapenet_to_raw_points(mesh.vertices), mesh.faces.copy(), process=False)
@@ -103,6 +104,6 @@ def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotatio
         return entry
 
     def finish(index: dict, transaction, entry: dict) -> tuple[dict, list[str], list[str]]:
-        return entry, [f"masks/{name}"], []
+        return entry, [], []  # (the transaction swaps masks/<name> whole)
 
     return export_unit(out_dir, reconstruction.sequence, "redwood75", prepare, finish)

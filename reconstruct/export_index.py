@@ -80,7 +80,7 @@ def check_folder_format(out: Path, fmt: str) -> None:
     """InputError unless ``out`` is empty, absent, or already holds ``fmt`` exports (formats are never mixed)."""
     found = folder_format(out)
     if found is not None and found != fmt:
-        raise InputError(out, f"holds a {found} export; --format {fmt} would mix two formats in one folder (choose another --out)")
+        raise InputError(out, f"holds a {found} export; a {fmt} export here would mix two formats in one folder (choose another output folder)")
 
 
 def next_number(index: dict, key: str, taken: set[int]) -> int:

@@ -8,8 +8,10 @@ colour file's stem). Opening a sequence lists files only; images are read on dem
 
 from __future__ import annotations
 
+import os
 import re
 import threading
+import weakref
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,8 +31,19 @@ PLAUSIBLE_DEPTH = (0.1, 10.0)
 #: Default pairing tolerance: half a frame period of a 30 Hz sensor, microseconds.
 DEFAULT_PAIRING_TOLERANCE_US = 16_667
 #: Decoded depth frames a sequence keeps for the next read, at most (bytes; 128 MB, about 200 VGA frames): `check`
-#: decodes every frame before the work starts, and the work reads them again.
+#: decodes every frame before the work starts, and the work reads them again. Per Sequence object, in each process
+#: (a forked worker holds its own copy); a sequence longer than the budget keeps its last frames only.
 DEPTH_CACHE_BYTES = 128 * 2**20
+#: Every open sequence, for a forked child to make its locks anew (a thread of the parent may hold one at the fork).
+_OPEN: "weakref.WeakSet[Sequence]" = weakref.WeakSet()
+
+
+def _new_locks_after_fork() -> None:
+    for sequence in list(_OPEN):
+        sequence._decoded_lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_new_locks_after_fork)
 
 
 @dataclass(frozen=True)
@@ -159,6 +172,7 @@ class Sequence:
     def _new_cache(self) -> None:
         self._decoded: OrderedDict[Path, np.ndarray] = OrderedDict()  # depth path -> read-only image, the last read last
         self._decoded_lock = threading.Lock()  # frames are read on helper threads too (check, decoding ahead)
+        _OPEN.add(self)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)

@@ -163,3 +163,8 @@ def test_the_token_is_kept_for_the_next_server(tmp_path, monkeypatch):
     monkeypatch.setattr(origin_guard, "_tokens", {})
     renewed = require_token("0.0.0.0")
     assert renewed != first and len(renewed) >= 32 and path.read_text().strip() == renewed
+    path.chmod(0o644)  # readable by others: not trusted, replaced
+    monkeypatch.setattr(origin_guard, "_tokens", {})
+    third = require_token("0.0.0.0")
+    assert third != renewed and stat.S_IMODE(path.stat().st_mode) == 0o600 and path.read_text().strip() == third
+    assert sorted(p.name for p in path.parent.iterdir()) == sorted([path.name, origin_guard.token_file("192.168.1.5").name])

@@ -236,3 +236,17 @@ def test_panels_read_a_copy_of_the_document_under_the_lock(seq):
         assert reader.is_alive() and not read  # blocked until the lock is let go
     reader.join(2.0)
     assert len(read) == 1 and set(read[0].frames) == {seq.ids[0]}
+
+
+def test_one_side_of_the_box_changes_alone(seq):
+    """set_extent changes one side as one undoable step and keeps the others as the document holds them then."""
+    state = AppState(seq)
+    state.set_extents([0.1, 0.2, 0.3])
+    state.edit(lambda doc: setattr(doc, "extents", np.array([0.1, 0.25, 0.3])))  # another tab's change
+    state.set_extent(0, 0.12)
+    np.testing.assert_allclose(state.annotation.extents, [0.12, 0.25, 0.3])
+    assert state.undo() and np.allclose(state.annotation.extents, [0.1, 0.25, 0.3])
+    with pytest.raises(ValueError):
+        state.set_extent(3, 0.1)
+    with pytest.raises(ValueError):
+        state.set_extent(1, -0.1)
