@@ -89,39 +89,25 @@ def select_frames(sequence: Sequence, annotation: Annotation, frames: list[str] 
     return chosen
 
 
-#: The pipeline passes over the frames up to three times (carving, fusion, labels): the first keeps the decoded depth
-#: images, as the sensor's 16-bit values, up to this many bytes (a 640x480 frame is 0.6 MB, and ~10 ms to decode from
-#: its PNG); the later passes decode the others again.
-DEPTH_CACHE_BYTES = 256 * 2**20
-
-
-def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarray], cache: dict[str, np.ndarray] | None = None,
-                  ahead: bool = True) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarray], ahead: bool = True) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
     """Depth images (metres) in order, decoded one ahead on a worker thread (PNG decoding overlaps carving; without
-    ``ahead``, in turn on this thread); with ``cache`` (frame id -> raw depth), read from it where it holds the
-    frame and filled up to DEPTH_CACHE_BYTES."""
-    if cache is None:
-        cache = {}
+    ``ahead``, in turn on this thread). The pipeline passes over the frames up to three times (carving, fusion,
+    labels): the sequence keeps the decoded images for the later passes (sequences.reader.DEPTH_CACHE_BYTES)."""
     scale = np.float32(sequence.camera.depth_scale)
-
-    def raw(frame_id: str) -> np.ndarray:
-        return cache[frame_id] if frame_id in cache else sequence.depth_raw(frame_id)
 
     def decoded() -> Iterator[np.ndarray]:
         if not ahead:
-            yield from (raw(frame_id) for frame_id in ids)
+            yield from (sequence.depth_raw(frame_id) for frame_id in ids)
             return
         with ThreadPoolExecutor(max_workers=1) as pool:
-            pending = pool.submit(raw, ids[0])
+            pending = pool.submit(sequence.depth_raw, ids[0])
             for i in range(len(ids)):
                 image = pending.result()
                 if i + 1 < len(ids):
-                    pending = pool.submit(raw, ids[i + 1])
+                    pending = pool.submit(sequence.depth_raw, ids[i + 1])
                 yield image
 
     for frame_id, image in zip(ids, decoded()):
-        if frame_id not in cache and sum(a.nbytes for a in cache.values()) + image.nbytes <= DEPTH_CACHE_BYTES:
-            cache[frame_id] = image
         yield frame_id, image.astype(np.float32) * scale, poses[frame_id]
 
 
@@ -195,8 +181,7 @@ def reconstruct_sequence(
     hull = veto is not None and bool(evidence_hull) and annotation.symmetry != "y"
     if voxel_margin is None:
         voxel_margin = VOXEL_MARGIN
-    depth_cache: dict[str, np.ndarray] = {}
-    result = carving.carve(grid, _depth_frames(sequence, ids, poses, depth_cache, ahead), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked, ahead=ahead)
+    result = carving.carve(grid, _depth_frames(sequence, ids, poses, ahead), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked, ahead=ahead)
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -226,7 +211,7 @@ def reconstruct_sequence(
         say("fuse", 0, len(ids))
         start = time.perf_counter()
         solid = meshing.largest_component(occupied)
-        fused = tsdf.fuse(grid, _depth_frames(sequence, ids, poses, depth_cache, ahead), sequence.camera, solid)
+        fused = tsdf.fuse(grid, _depth_frames(sequence, ids, poses, ahead), sequence.camera, solid)
         timings["fuse"] = time.perf_counter() - start
     say("mesh", 0, 1)
     start = time.perf_counter()
@@ -244,7 +229,7 @@ def reconstruct_sequence(
     timings["tight_box"] = time.perf_counter() - start
     start = time.perf_counter()
     # what was seen: the carving frames' depth once more, against the mesh at their poses
-    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, depth_cache, ahead)), sequence.camera, filled, centre)
+    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre)
     timings["labels"] = time.perf_counter() - start
     say("mesh", 1, 1)
 

@@ -12,7 +12,6 @@ import os
 import re
 import threading
 import weakref
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,10 +29,11 @@ REDWOOD_NAME = re.compile(r"^(\d+)-(\d+)$")
 PLAUSIBLE_DEPTH = (0.1, 10.0)
 #: Default pairing tolerance: half a frame period of a 30 Hz sensor, microseconds.
 DEFAULT_PAIRING_TOLERANCE_US = 16_667
-#: Decoded depth frames a sequence keeps for the next read, at most (bytes; 128 MB, about 200 VGA frames): `check`
-#: decodes every frame before the work starts, and the work reads them again. Per Sequence object, in each process
-#: (a forked worker holds its own copy); a sequence longer than the budget keeps its last frames only.
-DEPTH_CACHE_BYTES = 128 * 2**20
+#: Decoded depth frames a sequence keeps for the next read, at most (bytes; 256 MB, about 400 VGA frames): `check`
+#: decodes every frame before the work starts, and the work reads them again (the tracker; reconstruction's carving,
+#: fusion and labelling, one pass each). The first frames read are kept, not the last: a pass front to back over a
+#: longer sequence then still finds those. Per Sequence object, in each process (a forked worker holds its own copy).
+DEPTH_CACHE_BYTES = 256 * 2**20
 #: Every open sequence, for a forked child to make its locks anew (a thread of the parent may hold one at the fork).
 _OPEN: "weakref.WeakSet[Sequence]" = weakref.WeakSet()
 
@@ -170,13 +170,14 @@ class Sequence:
         self._new_cache()
 
     def _new_cache(self) -> None:
-        self._decoded: OrderedDict[Path, np.ndarray] = OrderedDict()  # depth path -> read-only image, the last read last
+        self._decoded: dict[Path, np.ndarray] = {}  # depth path -> read-only image
+        self._decoded_bytes = 0
         self._decoded_lock = threading.Lock()  # frames are read on helper threads too (check, decoding ahead)
         _OPEN.add(self)
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        del state["_decoded"], state["_decoded_lock"]
+        del state["_decoded"], state["_decoded_bytes"], state["_decoded_lock"]
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -215,22 +216,20 @@ class Sequence:
         return read_color(self._resolve(frame).color_path, self.camera)
 
     def depth_raw(self, frame: int | str) -> np.ndarray:
-        """Depth image (H, W) uint16 in sensor units (multiply by ``camera.depth_scale`` for metres), read-only: the
-        last DEPTH_CACHE_BYTES of decoded frames are kept for the next read."""
+        """Depth image (H, W) uint16 in sensor units (multiply by ``camera.depth_scale`` for metres), read-only: decoded
+        frames are kept for the next read up to DEPTH_CACHE_BYTES."""
         path = self._resolve(frame).depth_path
         with self._decoded_lock:
             if path in self._decoded:
-                self._decoded.move_to_end(path)
                 return self._decoded[path]
         array = read_depth_raw(path, self.camera)
         if not array.any():
             raise InputError(path, "depth frame has no valid pixel (all zero)")
         array.flags.writeable = False
         with self._decoded_lock:
-            self._decoded[path] = array
-            total = sum(a.nbytes for a in self._decoded.values())
-            while total > DEPTH_CACHE_BYTES and len(self._decoded) > 1:
-                total -= self._decoded.popitem(last=False)[1].nbytes
+            if path not in self._decoded and self._decoded_bytes + array.nbytes <= DEPTH_CACHE_BYTES:
+                self._decoded[path] = array
+                self._decoded_bytes += array.nbytes
         return array
 
     def depth(self, frame: int | str) -> np.ndarray:

@@ -208,7 +208,7 @@ def test_bad_camera_yaml(tmp_path, text, fragment):
 
 def test_decoded_depth_is_kept_read_only_within_its_budget(tmp_path, monkeypatch):
     """`check` decodes every frame; the work's next read of a frame is that image (read-only, so no reader changes
-    it for the next), the oldest frames beyond DEPTH_CACHE_BYTES are read again, and a pickled sequence starts empty."""
+    it for the next), the frames read after DEPTH_CACHE_BYTES is full are read again, and a pickled sequence starts empty."""
     import pickle
 
     import sequences.reader as reader
@@ -223,8 +223,8 @@ def test_decoded_depth_is_kept_read_only_within_its_budget(tmp_path, monkeypatch
     monkeypatch.setattr(reader, "DEPTH_CACHE_BYTES", 2 * first.nbytes)  # room for two frames
     fresh = open_sequence(tmp_path / "seq")
     images = [fresh.depth_raw(i) for i in range(4)]
-    assert fresh.depth_raw(3) is images[3] and fresh.depth_raw(2) is images[2]
-    again = fresh.depth_raw(0)
-    assert again is not images[0] and np.array_equal(again, images[0])  # read again from its file
+    assert fresh.depth_raw(0) is images[0] and fresh.depth_raw(1) is images[1]  # the first two, kept for the next pass
+    again = fresh.depth_raw(3)
+    assert again is not images[3] and np.array_equal(again, images[3])  # read again from its file
     copy = pickle.loads(pickle.dumps(fresh))
     assert not copy._decoded and np.array_equal(copy.depth_raw(1), images[1])
