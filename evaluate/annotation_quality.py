@@ -81,14 +81,20 @@ class TrueSurface:
         return float(self.observed.mean())
 
 
+def _scene(mesh) -> "o3d.t.geometry.RaycastingScene":
+    """Open3D's ray-casting scene of ``mesh``'s triangles."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    return scene
+
+
 def observed_samples(points: np.ndarray, mesh, frames) -> np.ndarray:
     """(N,) bool: which true surface ``points`` (object frame) some frame observed.
 
     ``frames`` yields (4x4 true pose, (M, 3) measured object points in the camera frame) per frame; the
     object's own mesh (object frame) decides what each camera sees, so a thin wall's far side does not count.
     """
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    scene = _scene(mesh)
     observed = np.zeros(len(points), bool)
     for T, measured in frames:  # one ray cast and one tree per frame
         if len(measured) == 0:
@@ -133,8 +139,7 @@ def exterior_samples(points: np.ndarray, mesh, directions: int = EXTERIOR_DIRECT
     """(N,) bool: which ``points`` (N, 3) on ``mesh`` (object frame, m) lie on its outer surface: a ray from the point
     (started ``offset`` m along it) leaves the mesh without a hit in one of ``directions`` directions. A face inside
     the solid (where joined parts overlap) meets the enclosing walls in every direction."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    scene = _scene(mesh)
     points = np.asarray(points, dtype=np.float64)
     outside = np.zeros(len(points), bool)
     for direction in sphere_directions(directions):  # one ray cast per direction, over the points not yet out

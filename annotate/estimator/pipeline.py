@@ -119,7 +119,7 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
     last_id, last_pose = start, placed
     previous, before = placed, None
     for frame_id in order:
-        predicted = previous if before is None else (previous @ np.linalg.inv(before)) @ previous
+        predicted = previous if before is None else carried(previous, before)
         result, crop = setup.register(frame_id, predicted, model)
         if result.ok and result.fitness >= config.min_fitness / 2:
             pose = result.pose
@@ -135,13 +135,18 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
     return poses, steps
 
 
+def carried(last: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """The pose (4x4) one frame after ``last`` at constant velocity, the motion from ``before`` to ``last`` once more."""
+    return (last @ np.linalg.inv(before)) @ last
+
+
 def _closure(setup: _Setup, start: np.ndarray, poses: dict[str, np.ndarray], order: list[str], target: np.ndarray) -> float:
     """How far a chain from the anchor at ``start`` (its pose), carried one frame on at its last velocity, ends from
     the anchor it runs into (``target``), in anchor sigmas (rotation's and centre's summed; for symmetry y without
     the spin)."""
     last = poses[order[-1]]
     before = poses[order[-2]] if len(order) > 1 else start
-    predicted = (last @ np.linalg.inv(before)) @ last
+    predicted = carried(last, before)
     degrees = float(rotation_error(predicted[:3, :3], target[:3, :3], "y" if setup.symmetric else "none"))
     metres = float(np.linalg.norm(predicted[:3, 3] - target[:3, 3]))
     return degrees / setup.config.anchor_sigma_deg + metres / setup.config.anchor_sigma_m
