@@ -18,7 +18,7 @@ from sequences.annotation import Annotation, annotation_path
 from sequences.errors import InputError
 from sequences.reader import Sequence
 
-from . import SURFACE, SURFACES, carving, evidence, meshing, tsdf  # noqa: F401 (SURFACE, SURFACES: defined there, light to import)
+from . import SURFACE, SURFACES, carving, evidence, meshing, support, tsdf  # noqa: F401 (SURFACE, SURFACES: defined there, light to import)
 from .revolution import fit_revolution, revolved_fill
 from .seen import SurfaceLabels, label_surface
 from .tight_box import fit_tight_box
@@ -141,6 +141,7 @@ def reconstruct_sequence(
     unbacked: int | None = carving.DEFAULT_UNBACKED,
     evidence_hull: bool | None = None,
     box_prior: bool = True,
+    support_plane: bool = True,
     smoothing: str = "taubin",
     smoothing_iterations: int = 10,
     include_flagged: bool = False,
@@ -154,7 +155,8 @@ def reconstruct_sequence(
     ``voxel_size`` and ``margin`` (per side, around the annotated box) in metres; ``k`` votes threshold
     (default :func:`carving.choose_k`). For ``symmetry: y`` the solid of revolution fills in what no frame
     observed where the measured surface is round (:mod:`reconstruct.revolution`). ``box_prior``: space no
-    frame observed counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK). ``evidence_hull``
+    frame observed counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK). ``support_plane``: the
+    plane a static object stands on, measured beside it in every frame, is not object (:mod:`reconstruct.support`). ``evidence_hull``
     (off by default, never for symmetry y): drop the unseen space no measured surface bounds
     (:mod:`reconstruct.evidence`). ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
     VOXEL_MARGIN. ``surface`` (SURFACES): mesh the carved occupancy, or the fused depth where frames measured the
@@ -185,25 +187,36 @@ def reconstruct_sequence(
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    occupied = result.occupied
+    occupied, behind = result.occupied, result.behind_count
+    plane = None
+    if support_plane:  # a table the object stands on is no part of it (a hand-held object finds none)
+        plane = support.find_support(((T, depth) for _, depth, T in _depth_frames(sequence, ids[:: support.FRAME_STEP], poses, ahead)),
+                                     sequence.camera, grid, annotation.extents)
+    if plane is not None:
+        cut = support.beyond_support(occupied, grid, plane)
+        occupied = occupied & ~cut
+        behind = None if behind is None else np.where(cut, 0, behind)
+    timings["support"] = time.perf_counter() - start
+
+    start = time.perf_counter()
     revolution, filled = None, None
-    if annotation.symmetry == "y" and result.behind_count is not None:
+    if annotation.symmetry == "y" and behind is not None:
         # the label is a prior: the solid of revolution fills in only what no frame observed, where the data is round
         # decided by the data: carved, or seen just behind a measured surface (a voxel seen free too few times to be
         # carved is not: its ring may carve it)
-        observed = ~occupied | (result.behind_count > 0)
-        revolution = fit_revolution(occupied & (result.behind_count > 0), grid)
+        observed = ~occupied | (behind > 0)
+        revolution = fit_revolution(occupied & (behind > 0), grid)
         revolved = revolved_fill(occupied, observed, grid, revolution)
         filled, occupied = occupied & ~revolved, revolved
     elif annotation.symmetry == "y":
         occupied = carving.revolve_occupancy(occupied, grid, carved_share)
-    elif result.behind_count is not None and hull:
+    elif behind is not None and hull:
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
-        occupied = evidence.evidence_hull(occupied, result.behind_count)
-    if result.behind_count is not None and box_prior:
+        occupied = evidence.evidence_hull(occupied, behind)
+    if behind is not None and box_prior:
         # space no frame observed is object only inside the annotated box: the grid's margin (for boxes placed too
         # small) would otherwise stay solid wherever no frame looked
-        unobserved = (result.free_count == 0) & (result.behind_count == 0)
+        unobserved = (result.free_count == 0) & (behind == 0)
         occupied = occupied & ~(unobserved & ~carving.inside_box(grid, annotation.extents * (1 + BOX_PRIOR_SLACK)))
     timings["symmetry"] = time.perf_counter() - start
     fused = None
@@ -261,6 +274,8 @@ def reconstruct_sequence(
     }
     if revolution is not None:
         report["revolution"] = revolution.summary()
+    if plane is not None:
+        report["support_plane"] = plane.summary()
     if fused is not None:
         report["fused"] = {"frames": fused.frames, "truncation": fused.truncation, "voxels_measured": int((fused.weight >= tsdf.MIN_WEIGHT).sum())}
     report.update(labels.report())

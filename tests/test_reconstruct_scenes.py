@@ -100,8 +100,10 @@ def write_scene(
     upper_only: bool = False,
     arc_deg: float = 360.0,
     seed: int = 0,
+    extra: trimesh.Trimesh | None = None,
 ) -> Scene:
-    """Render ``mesh`` (object frame) into ``root`` (rgb/, depth/, camera.yaml, annotation.yaml with the true poses)."""
+    """Render ``mesh`` (object frame) into ``root`` (rgb/, depth/, camera.yaml, annotation.yaml with the true poses);
+    ``extra``: a mesh fixed in the object frame beside it (a table it stands on), rendered too but not the object."""
     rng = np.random.default_rng(seed)
     (root / "rgb").mkdir(parents=True, exist_ok=True)
     (root / "depth").mkdir(parents=True, exist_ok=True)
@@ -115,6 +117,8 @@ def write_scene(
         posed = mesh.copy()
         posed.apply_transform(T)
         meshes = [posed]
+        if extra is not None:
+            meshes.append(extra.copy().apply_transform(T))
         if hand:
             # a sphere touching the object's side, at a place that changes every frame
             angle = rng.uniform(0, 2 * np.pi)

@@ -80,7 +80,7 @@ def goal_misses(row: dict) -> list[str]:
     return missed_goals(row, RECONSTRUCTION_GOALS + (TRACKING_GOALS if row["setting"] != "truth" else ()))
 
 
-def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Truth, surface, mesh_surface: str | None = None) -> dict:
+def reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Truth, surface, mesh_surface: str | None = None) -> dict:
     """Scores of ``reconstruct_sequence`` on ``annotation``; ``mesh_surface``: its ``surface`` option (None: its default)."""
     from reconstruct.pipeline import SURFACE, reconstruct_sequence
     from sequences.errors import InputError
@@ -104,6 +104,7 @@ def _reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Tr
         "measured_face_error_mm": max((abs(v) for f, v in shape["face_errors_mm"].items() if measured is None or f in measured), default=None),
         "reconstruct_s": seconds,
         "surface": mesh_surface or SURFACE,
+        "support_plane": recon.report.get("support_plane"),  # the plane a static object stood on, where one was found
     }
 
 
@@ -122,7 +123,7 @@ def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, work
     base = {"sequence": name, "category": truth.category, "symmetry": truth.symmetry, "frames": len(sequence),
             "observed_share_truth": surface.observed_share,
             "revolution_f5": revolution_fscore(truth.mesh) if truth.symmetry == "y" else None}
-    rows = [{**base, "setting": "truth", **_reconstruction_scores(sequence, true_pose_annotation(truth, name), truth, surface, mesh_surface)}]
+    rows = [{**base, "setting": "truth", **reconstruction_scores(sequence, true_pose_annotation(truth, name), truth, surface, mesh_surface)}]
     for setting in settings:
         placed = truth_annotation(truth, manual_frames(sequence.ids, setting.boxes), setting.degrees, setting.metres, setting.extents, seed=seed)
         config = None
@@ -137,7 +138,7 @@ def run_sequence(root: Path, settings: list[Setting], name: str, seed: int, work
         flagged = {f: bool(p.extra.get("flagged")) for f, p in tracked.frames.items()}
         row = {**base, "setting": setting.name, "engine": engine, **pose_scores(poses, flagged, truth.poses, truth.symmetry),
                "ms_per_frame": 1000 * wall / len(sequence), "cpu_ms_per_frame": 1000 * cpu / len(sequence)}
-        row.update(_reconstruction_scores(sequence, tracked, truth, surface, mesh_surface))
+        row.update(reconstruction_scores(sequence, tracked, truth, surface, mesh_surface))
         rows.append(row)
     for row in rows:
         if row.get("observed_share_reported") is not None:  # percentage points between what the export says was seen and what was
