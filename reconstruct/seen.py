@@ -86,14 +86,14 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
     scene.add_triangles(o3d.core.Tensor(points.astype(np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
     observed = np.zeros(len(points), bool)
     low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
+    corners = np.where(np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1).astype(bool), high, low)  # (8, 3)
     for pose, depth in frames:  # one ray cast and one tree per frame, over the points not yet observed
         todo = np.flatnonzero(~observed)
         if not len(todo):
             break
-        sampled = np.zeros(depth.shape, bool)
-        sampled[::PIXEL_STRIDE, ::PIXEL_STRIDE] = True
-        measured, _ = camera.backproject(depth, sampled)
         R, t = pose[:3, :3], pose[:3, 3]
+        # only the pixels where the box about the points projects can hold a measured point near one
+        measured, _ = camera.backproject(depth, stride=PIXEL_STRIDE, window=camera.window(corners @ R.T + t))
         measured = (measured - t) @ R
         measured = measured[np.all((measured >= low) & (measured <= high), axis=1)]
         if not len(measured):

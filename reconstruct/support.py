@@ -79,9 +79,11 @@ def _candidates(frames: Iterable[tuple[np.ndarray, np.ndarray]], camera: Camera,
     high = low + grid.voxel_size * np.asarray(grid.shape)
     reach = SHELL * np.asarray(extents, dtype=np.float64) / 2
     points, depths, which, within, within_depths, sampled = [], [], [], [], [], 0
+    shell = np.where(np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1).astype(bool), high + reach, low - reach)  # (8, 3)
     for pose, depth in frames:
         sampled += 1
-        measured, _ = camera.backproject(depth, stride=PIXEL_STEP)
+        window = camera.window(shell @ pose[:3, :3].T + pose[:3, 3])  # only the pixels the shell projects to
+        measured, _ = camera.backproject(depth, stride=PIXEL_STEP, window=window)
         p = (measured - pose[:3, 3]) @ pose[:3, :3]
         beyond = np.any((p < low) | (p > high), axis=1)
         outside = beyond & np.all((p >= low - reach) & (p <= high + reach), axis=1)

@@ -71,18 +71,11 @@ def object_depth(depth: np.ndarray, pose: np.ndarray, camera: Camera, near_solid
     camera), in float32: a voxel index is z (R^T r) / s - (R^T t + origin) / s for the pixel's ray r = ((u - cx) / fx,
     (v - cy) / fy, 1), depth z and voxel size s."""
     depth = np.asarray(depth, dtype=np.float32)
-    height, width = depth.shape
     pose = np.asarray(pose, dtype=np.float64)
     R, t = pose[:3, :3], pose[:3, 3]
     shape = np.array(grid.shape)
     corners = np.asarray(grid.origin)[None, :] + grid.voxel_size * (shape - 1)[None, :] * np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1)
-    q = corners @ R.T + t
-    rows, cols = slice(0, height), slice(0, width)
-    if q[:, 2].min() > 1e-3:
-        u = camera.fx * q[:, 0] / q[:, 2] + camera.cx
-        v = camera.fy * q[:, 1] / q[:, 2] + camera.cy
-        cols = slice(int(np.clip(np.floor(u.min()) - 1, 0, width)), int(np.clip(np.ceil(u.max()) + 2, 0, width)))
-        rows = slice(int(np.clip(np.floor(v.min()) - 1, 0, height)), int(np.clip(np.ceil(v.max()) + 2, 0, height)))
+    rows, cols = camera.window(corners @ R.T + t)
     out = np.zeros_like(depth)
     crop = depth[rows, cols]
     vv, uu = np.nonzero(crop > 0)

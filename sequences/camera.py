@@ -66,22 +66,39 @@ class Camera:
         rays[..., 2] = 1.0
         return rays
 
-    def backproject(self, depth: np.ndarray, mask: np.ndarray | None = None, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def window(self, points: np.ndarray, slack: int = 1) -> tuple[slice, slice]:
+        """(rows, cols): the pixel rectangle that holds the projections of camera-frame ``points`` (N, 3, metres), with
+        ``slack`` pixels beyond on every side, clipped to the image; the whole image when a point lies within 1 mm of
+        the camera plane or behind it (its projection is no bound)."""
+        points = np.asarray(points, dtype=np.float64)
+        if not len(points) or points[:, 2].min() <= 1e-3:
+            return slice(0, self.height), slice(0, self.width)
+        u = self.fx * points[:, 0] / points[:, 2] + self.cx
+        v = self.fy * points[:, 1] / points[:, 2] + self.cy
+        cols = slice(int(np.clip(np.floor(u.min()) - slack, 0, self.width)), int(np.clip(np.ceil(u.max()) + slack + 1, 0, self.width)))
+        rows = slice(int(np.clip(np.floor(v.min()) - slack, 0, self.height)), int(np.clip(np.ceil(v.max()) + slack + 1, 0, self.height)))
+        return rows, cols
+
+    def backproject(self, depth: np.ndarray, mask: np.ndarray | None = None, stride: int = 1,
+                    window: tuple[slice, slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Back-project a depth image (H, W) in metres (0 or NaN = no measurement).
 
         Returns camera-frame points (N, 3) float64 and their flat pixel indices (N,) into the
         image, for the valid pixels where ``mask`` (H, W bool) is true. With ``stride`` only every
         ``stride``-th pixel of every ``stride``-th row counts (a decimated cloud; the indices stay
-        those of the full image).
+        those of the full image). With ``window`` ((rows, cols) slices, :meth:`window`) only its
+        pixels count: the same points as without it, less those outside.
         """
         depth = np.asarray(depth)
-        sub = depth[::stride, ::stride]
+        rows, cols = window if window is not None else (slice(0, depth.shape[0]), slice(0, depth.shape[1]))
+        r0, c0 = rows.start + -rows.start % stride, cols.start + -cols.start % stride  # the window's first on the image's stride grid
+        sub = depth[r0:rows.stop:stride, c0:cols.stop:stride]
         valid = np.isfinite(sub) & (sub > 0)
         if mask is not None:
-            valid &= np.asarray(mask, dtype=bool)[::stride, ::stride]
+            valid &= np.asarray(mask, dtype=bool)[r0:rows.stop:stride, c0:cols.stop:stride]
         v, u = np.nonzero(valid)  # row-major, as the flat indices
         z = sub[v, u].astype(np.float64)
-        v, u = v * stride, u * stride
+        v, u = v * stride + r0, u * stride + c0
         points = np.empty((z.size, 3))
         points[:, 0] = (u - self.cx) / self.fx * z
         points[:, 1] = (v - self.cy) / self.fy * z

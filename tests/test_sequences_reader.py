@@ -99,6 +99,26 @@ def test_backprojection_inverts_projection_at_pixel_centres():
     assert np.allclose(p, [[0.5 / 525 * 2.0, 0.5 / 525 * 2.0, 2.0]], atol=1e-6)
 
 
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_a_window_backprojects_the_same_points_less_those_outside(stride):
+    cam = Camera()
+    rng = np.random.default_rng(4)
+    depth = np.where(rng.random((480, 640)) < 0.7, rng.uniform(0.4, 2.0, (480, 640)), 0.0).astype(np.float32)
+    mask = rng.random((480, 640)) < 0.8
+    corners = np.array([[-0.1, -0.05, 0.8], [0.12, 0.07, 0.9], [0.0, 0.0, 1.2]])  # camera frame
+    rows, cols = cam.window(corners)
+    uv, _ = cam.project(corners)
+    assert cols.start <= np.floor(uv[:, 0].min()) - 1 and cols.stop >= np.ceil(uv[:, 0].max()) + 2
+    assert rows.start <= np.floor(uv[:, 1].min()) - 1 and rows.stop >= np.ceil(uv[:, 1].max()) + 2
+    points, index = cam.backproject(depth, mask, stride=stride, window=(rows, cols))
+    full, full_index = cam.backproject(depth, mask, stride=stride)
+    v, u = np.divmod(full_index, 640)
+    inside = (v >= rows.start) & (v < rows.stop) & (u >= cols.start) & (u < cols.stop)
+    assert np.array_equal(index, full_index[inside]) and np.array_equal(points, full[inside])
+    # a point behind the camera bounds nothing: the whole image
+    assert cam.window(np.array([[0.0, 0.0, 1.0], [0.1, 0.0, -0.2]])) == (slice(0, 480), slice(0, 640))
+
+
 def test_frame_points_masked_and_box_cropped(tmp_path):
     root = redwood_sequence(tmp_path / "s", n=1)
     seq = open_sequence(root)
