@@ -28,15 +28,15 @@ from typing import Any, Callable, Iterator
 
 from sequences.errors import InputError
 
-from .local import run_in_process
+from .local import Engine, run_in_process
 from .units import error_line
 
 #: How long to wait for the scheduler to answer, s.
 CONNECT_TIMEOUT = "15s"
 
 
-class ClusterPool:
-    """The engine interface of :class:`batch.local.LocalPool` on a Dask cluster at ``address``."""
+class ClusterPool(Engine):
+    """Unit steps on a Dask cluster at ``address`` (:class:`batch.local.Engine`)."""
 
     def __init__(self, address: str, preload: tuple[str, ...] = ()) -> None:
         try:
@@ -58,12 +58,6 @@ class ClusterPool:
             return f"Dask cluster {self.address} ({threads} units at once on {len(workers)} worker{'s' if len(workers) != 1 else ''})"
         except Exception:  # the report's words only
             return f"Dask cluster {self.address}"
-
-    def __enter__(self) -> "ClusterPool":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def submit(self, token: Any, function: Callable, args: tuple, priority: int = 0) -> None:
         future = self.client.submit(run_in_process, function, args, self.preload, pure=False, priority=priority)

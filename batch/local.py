@@ -122,39 +122,68 @@ def _death(process) -> str:
     return f"its worker process ended without a result (exit code {code})"
 
 
-class LocalPool:
-    """Unit steps on fresh local processes, at most ``workers`` at once (see the module notes).
-
-    ``submit(token, function, args, priority)`` queues a step (higher priority first, then in submission order);
+class Engine:
+    """What runs a batch's unit steps: ``submit(token, function, args, priority)`` queues a step;
     ``next_result()`` blocks until one finishes and returns ``(token, result)`` (:func:`batch.units.run_step`'s
-    dict), or None when nothing is queued or running. Use it as a context manager: leaving it ends what still runs.
-    """
-
-    def __init__(self, workers: int, preload: Sequence[str] = ()) -> None:
-        self.workers = max(1, int(workers))
-        self.preload = tuple(preload)
-        self._context = None
-        self._queue: list = []
-        self._order = itertools.count()
-        self._running: dict[Any, tuple[Any, multiprocessing.Process]] = {}  # connection -> (token, process)
+    dict), or None when nothing is queued or running; ``describe()`` says where they run. A context manager:
+    leaving it ends what still runs (``close``)."""
 
     def describe(self) -> str:
-        return f"{self.workers} local process{'es' if self.workers > 1 else ''}"
+        raise NotImplementedError
 
-    def __enter__(self) -> "LocalPool":
+    def submit(self, token: Any, function: Callable, args: tuple, priority: int = 0) -> None:
+        raise NotImplementedError
+
+    def next_result(self) -> tuple[Any, dict] | None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """End what still runs and drop what is queued."""
+
+    def __enter__(self):
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
 
+
+class _Queued(Engine):
+    """An engine that holds its steps in this process until it starts them: higher priority first, then in
+    submission order."""
+
+    def __init__(self) -> None:
+        self._queue: list = []
+        self._order = itertools.count()
+
     def submit(self, token: Any, function: Callable, args: tuple, priority: int = 0) -> None:
         heapq.heappush(self._queue, (-priority, next(self._order), token, function, args))
+
+    def _pop(self) -> tuple[Any, Callable, tuple]:
+        _, _, token, function, args = heapq.heappop(self._queue)
+        return token, function, args
+
+    def close(self) -> None:
+        self._queue.clear()
+
+
+class LocalPool(_Queued):
+    """Unit steps on fresh local processes, at most ``workers`` at once (see the module notes and :class:`Engine`)."""
+
+    def __init__(self, workers: int, preload: Sequence[str] = ()) -> None:
+        super().__init__()
+        self.workers = max(1, int(workers))
+        self.preload = tuple(preload)
+        self._context = None
+        self._running: dict[Any, tuple[Any, multiprocessing.Process]] = {}  # connection -> (token, process)
+
+    def describe(self) -> str:
+        return f"{self.workers} local process{'es' if self.workers > 1 else ''}"
 
     def _start_queued(self) -> None:
         while self._queue and len(self._running) < self.workers:
             if self._context is None:
                 self._context = start_server(self.preload)
-            _, _, token, function, args = heapq.heappop(self._queue)
+            token, function, args = self._pop()
             receiver, sender = self._context.Pipe(duplex=False)
             process = self._context.Process(target=_child, args=(sender, function, args))  # not a daemon: a unit may start processes of its own
             with _children_allowed():
@@ -181,7 +210,7 @@ class LocalPool:
 
     def close(self) -> None:
         """End what still runs (an interrupt, an error in the client) and drop what is queued."""
-        self._queue.clear()
+        super().close()
         for connection, (_, process) in list(self._running.items()):
             process.terminate()
         for connection, (_, process) in list(self._running.items()):
@@ -201,28 +230,15 @@ def run_in_process(function: Callable, args: tuple, preload: Sequence[str] = ())
         return pool.next_result()[1]
 
 
-class InlinePool:
-    """The engine interface of :class:`LocalPool` in this process, one step after another: for work whose units are
-    cheap to start here and dear to start elsewhere (``evaluate --workers 1``: a method's model loaded once)."""
-
-    def __init__(self) -> None:
-        self._queue: list = []
-        self._order = itertools.count()
+class InlinePool(_Queued):
+    """Unit steps in this process, one after another (:class:`Engine`): for work whose units are cheap to start here
+    and dear to start elsewhere (``evaluate --workers 1``: a method's model loaded once)."""
 
     def describe(self) -> str:
         return "this process"
 
-    def __enter__(self) -> "InlinePool":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._queue.clear()
-
-    def submit(self, token: Any, function: Callable, args: tuple, priority: int = 0) -> None:
-        heapq.heappush(self._queue, (-priority, next(self._order), token, function, args))
-
     def next_result(self) -> tuple[Any, dict] | None:
         if not self._queue:
             return None
-        _, _, token, function, args = heapq.heappop(self._queue)
+        token, function, args = self._pop()
         return token, run_step(function, args)

@@ -12,11 +12,14 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from tqdm import tqdm
 
 from .units import Outcome, Unit, finished, write_marker
+
+if TYPE_CHECKING:  # the engines import multiprocessing's and Dask's machinery: only when a batch runs
+    from .local import Engine
 
 #: The ordered steps' priority on the engine: ahead of the first steps still queued, so the order never waits long.
 COMMIT_PRIORITY = 10
@@ -52,7 +55,7 @@ def progress_bar(total: int, desc: str, noun: str, quiet: bool = False, initial:
                 mininterval=0.1 if interactive else 5.0, smoothing=0.1)
 
 
-def make_engine(workers: int, cluster: str | None, preload: Sequence[str] = (), inline: bool = False):
+def make_engine(workers: int, cluster: str | None, preload: Sequence[str] = (), inline: bool = False) -> Engine:
     """The engine: a Dask cluster at ``cluster``'s address, else this process (one worker and ``inline``), else
     ``workers`` local processes."""
     if cluster:
@@ -66,7 +69,7 @@ def make_engine(workers: int, cluster: str | None, preload: Sequence[str] = (), 
 
 def run_batch(units: Sequence[Unit], *, workers: int = 1, cluster: str | None = None, redo: bool = False, desc: str = "batch",
               noun: str = "unit", quiet: bool = False, preload: Sequence[str] = (), describe: Callable[[Outcome], str] | None = None,
-              inline: bool = False, engine=None) -> Batch:
+              inline: bool = False, engine: Engine | None = None) -> Batch:
     """Run ``units`` (see the module notes); a unit's failure is its outcome, never an exception here.
 
     ``workers``: local processes (without ``cluster``); ``cluster``: a Dask scheduler's address; ``redo``: run the

@@ -23,7 +23,6 @@ import argparse
 import json
 import re
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,6 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from annotate import box_edits  # noqa: E402
+from annotate.process import start as start_annotate  # noqa: E402
 from annotate.app_review import is_flagged  # noqa: E402
 from evaluate.geometry import raw_to_shapenet_pose  # noqa: E402
 from evaluate.metrics.pose_errors import rotation_error, translation_error  # noqa: E402
@@ -63,37 +63,6 @@ ADJUST_ABOVE_DEG = 2.0
 RIGHT_DEG, RIGHT_M = 5.0, 0.01
 #: Seconds to wait for the server's long steps (tracking, export) on a loaded machine.
 LONG_S = 1800.0
-
-
-# --- the server --------------------------------------------------------------------------------------------------
-def start_server(root: Path, log_path: Path, engine: str | None = None) -> tuple[subprocess.Popen, str]:
-    """``annotate ROOT --port 0`` as a subprocess (the engine from $REDWOOD_GT_ENGINE or ``engine``), and its URL."""
-    import os
-
-    env = dict(os.environ)
-    if engine:
-        env["REDWOOD_GT_ENGINE"] = engine
-    log = open(log_path, "w")
-    process = subprocess.Popen([sys.executable, "-c", "from annotate.cli import entry; entry()", str(root), "--port", "0"],
-                               cwd=REPO, stdout=log, stderr=subprocess.STDOUT, text=True, env=env)
-    log.close()
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and process.poll() is None:
-        match = re.search(r"open (http://\S+)", log_path.read_text())
-        if match:
-            return process, match.group(1)
-        time.sleep(0.2)
-    stop_server(process)
-    raise RuntimeError("annotate did not print its URL:\n" + log_path.read_text())
-
-
-def stop_server(process: subprocess.Popen) -> None:
-    process.terminate()
-    try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
 
 
 # --- what the person sees --------------------------------------------------------------------------------------------
@@ -446,7 +415,7 @@ def run(source: Path, engine: str | None = None, keep: Path | None = None) -> di
         root = work / source.name
         shutil.copytree(source, root, ignore=shutil.ignore_patterns("annotation.yaml*", "*_gt"))
         truth = open_truth(root)
-        process, url = start_server(root, work / "annotate.log", engine)
+        server, url = start_annotate([root, "--port", "0"], work / "annotate.log", timeout=300, environment={"REDWOOD_GT_ENGINE": engine} if engine else None)
         try:
             with sync_playwright() as p:
                 browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS, headless=True)
@@ -461,7 +430,7 @@ def run(source: Path, engine: str | None = None, keep: Path | None = None) -> di
                 finally:
                     browser.close()
         finally:
-            stop_server(process)
+            server.stop()
         return figures
     finally:
         shutil.rmtree(work, ignore_errors=True)

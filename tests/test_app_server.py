@@ -2,11 +2,7 @@
 
 from __future__ import annotations
 
-import re
 import socket
-import subprocess
-import sys
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -17,6 +13,7 @@ import websockets.exceptions
 import websockets.sync.client
 from test_app_fixtures import make_sequence
 
+from annotate.process import AnnotateProcess
 from annotate.origin_guard import cookie_name, guard_origins, is_loopback, require_token
 from sequences.errors import InputError
 
@@ -90,43 +87,20 @@ def test_beyond_loopback_every_request_needs_the_token():
         server.stop()
 
 
-def _annotate(root: Path, log: Path, *args: str) -> subprocess.Popen:
-    command = [sys.executable, "-c", "from annotate.cli import entry; entry()", str(root), *args]
-    return subprocess.Popen(command, cwd=REPO, stdout=open(log, "w"), stderr=subprocess.STDOUT, text=True)
-
-
-def _printed(process: subprocess.Popen, log: Path, pattern: str, timeout: float = 120.0) -> re.Match:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and process.poll() is None:
-        match = re.search(pattern, log.read_text())
-        if match:
-            return match
-        time.sleep(0.2)
-    raise AssertionError(f"annotate did not print {pattern!r}:\n{log.read_text()}")
-
-
-def _stop(process: subprocess.Popen) -> None:
-    process.terminate()
-    try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
-
 
 @pytest.mark.slow
 def test_annotate_beyond_loopback_warns_and_prints_a_url_with_its_token(tmp_path):
     root, _ = make_sequence(tmp_path / "seq", frames=2)
     log = tmp_path / "annotate.log"
-    process = _annotate(root, log, "--host", "0.0.0.0", "--port", "0")
+    process = AnnotateProcess([root, "--host", "0.0.0.0", "--port", "0"], log)
     try:
-        match = _printed(process, log, r"open (http://127\.0\.0\.1:(\d+))/\?token=([\w-]+)")
+        match = process.printed(r"open (http://127\.0\.0\.1:(\d+))/\?token=([\w-]+)")
         base, token = match.group(1), match.group(3)
         assert "warning: serving on 0.0.0.0" in log.read_text()
         assert _get(f"{base}/")[0] == 403
         assert _get(f"{base}/?token={token}")[0] == 200
     finally:
-        _stop(process)
+        process.stop()
 
 
 def test_a_taken_port_is_refused_not_moved(monkeypatch):

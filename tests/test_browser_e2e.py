@@ -11,14 +11,15 @@ from __future__ import annotations
 import io
 import os
 import re
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from test_app_fixtures import make_sequence
+
+from annotate.process import AnnotateProcess
+from annotate.process import start as start_annotate
 
 from sequences.annotation import load_annotation
 from sequences.reader import open_sequence
@@ -52,29 +53,12 @@ def sequence(tmp_path):
     return root
 
 
-def _start(sequence: Path, log_path: Path, port: int = 0) -> tuple[subprocess.Popen, str]:
+def _start(sequence: Path, log_path: Path, port: int = 0) -> tuple[AnnotateProcess, str]:
     """``annotate SEQ --port PORT`` as a subprocess, and the URL it printed."""
-    command = [sys.executable, "-c", "from annotate.cli import entry; entry()", str(sequence), "--port", str(port)]
-    log = open(log_path, "w")  # a file, not a pipe: nobody reads the server's output while it runs
-    process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, text=True)
-    log.close()  # the child holds its own copy
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and process.poll() is None:
-        match = re.search(r"open (http://\S+)", log_path.read_text())
-        if match:
-            return process, match.group(1)
-        time.sleep(0.2)
-    _stop(process)
-    pytest.fail("annotate did not print its URL:\n" + log_path.read_text())
-
-
-def _stop(process: subprocess.Popen) -> None:
-    process.terminate()
     try:
-        process.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+        return start_annotate([sequence, "--port", port], log_path)
+    except RuntimeError as error:
+        pytest.fail(str(error))
 
 
 @pytest.fixture
@@ -85,7 +69,7 @@ def server(sequence, tmp_path):
     try:
         yield running
     finally:
-        _stop(running["process"])
+        running["process"].stop()
 
 
 def _variance(png: bytes, box: dict) -> float:
@@ -178,7 +162,7 @@ def test_annotate_in_headless_chromium(server, tmp_path):
             # while its page has the focus) and shows the new server's session
             other.close()
             port = re.search(r":(\d+)", url).group(1)
-            _stop(server["process"])
+            server["process"].stop()
             server["process"], again = _start(server["sequence"], tmp_path / "annotate2.log", int(port))
             assert again == url
             page.bring_to_front()
