@@ -242,7 +242,7 @@ def reconstruct_sequence(
     timings["tight_box"] = time.perf_counter() - start
     start = time.perf_counter()
     # what was seen: the carving frames' depth once more, against the mesh at their poses
-    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre)
+    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre, plane)
     timings["labels"] = time.perf_counter() - start
     say("mesh", 1, 1)
 

@@ -11,7 +11,9 @@ faces that a measurement bounds.
   a solid skirt down to where the carving's grid ends).
 
 The labels go with the export (a coloured PLY beside the report, their shares in it); a box face is bounded by
-a measurement when at least half the surface within LABEL_REACH voxels of it is observed. Faces of the box that
+a measurement when at least half the surface within LABEL_REACH voxels of it is observed ("measured"), or when it
+faces the plane the object stands on (:mod:`reconstruct.support`) and at least half that surface lies on it
+("support": the table measured beside it bounds it, though no frame saw the face itself). Faces of the box that
 rest on surface no frame measured are named, with the turn that would show them.
 """
 
@@ -25,6 +27,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .carving import VoxelGrid
+from .support import SupportPlane
 
 OBSERVED, INFERRED, UNSEEN = 0, 1, 2
 LABEL_NAMES = ("observed", "inferred", "unseen")
@@ -38,6 +41,10 @@ LABEL_REACH = 2
 OBSERVED_TOLERANCE = 0.004
 #: Every this many pixels of a frame's depth are measured points for the test (a pixel is ~1.3 mm at 0.7 m).
 PIXEL_STRIDE = 2
+#: Face states whose extent a measurement bounds: the face's own surface, or the plane the object stands on.
+BOUNDED = ("measured", "support")
+#: A box face faces the support when its outward normal is within acos(this) of the plane's inward one, reversed.
+SUPPORT_FACING_COS = 0.95
 #: The box's faces, as (axis, sign, name, the turn that shows them) in the object frame (ShapeNet axes, y up).
 BOX_FACES = (
     (1, -1, "-y (bottom)", "turn the object over to show its underside"),
@@ -55,11 +62,11 @@ class SurfaceLabels:
 
     labels: np.ndarray  # (V,) uint8
     shares: dict[str, float]  # area share of each label
-    faces: dict[str, str]  # box face -> "measured" | "inferred" | "unseen"
+    faces: dict[str, str]  # box face -> "measured" | "support" | "inferred" | "unseen"
 
     def unmeasured_faces(self) -> list[tuple[str, str]]:
         """(face, the turn that would show it) for every box face no measurement bounds."""
-        return [(name, advice) for _, _, name, advice in BOX_FACES if self.faces.get(name) != "measured"]
+        return [(name, advice) for _, _, name, advice in BOX_FACES if self.faces.get(name) not in BOUNDED]
 
     def report(self) -> dict:
         return {"surface_shares": {k: round(v, 4) for k, v in self.shares.items()}, "box_faces": dict(self.faces),
@@ -110,10 +117,12 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
     return observed
 
 
-def label_surface(mesh: trimesh.Trimesh, grid: VoxelGrid, frames, camera, filled: np.ndarray | None, centre: np.ndarray) -> SurfaceLabels:
+def label_surface(mesh: trimesh.Trimesh, grid: VoxelGrid, frames, camera, filled: np.ndarray | None, centre: np.ndarray,
+                  support: SupportPlane | None = None) -> SurfaceLabels:
     """Label ``mesh`` (object frame, re-centred by the tight box's ``centre``: its points lie at p + centre in the frame
     the ``frames``' poses and the ``grid`` use). ``frames`` yields (pose, depth) as for :func:`observed_points`;
-    ``filled``: voxels the revolved fill carved (None without symmetry)."""
+    ``filled``: voxels the revolved fill carved (None without symmetry); ``support``: the plane the object stands on
+    (that frame), or None."""
     points = np.asarray(mesh.vertices) + np.asarray(centre)
     labels = np.full(len(points), UNSEEN, dtype=np.uint8)
     if filled is not None and filled.any():
@@ -136,6 +145,10 @@ def label_surface(mesh: trimesh.Trimesh, grid: VoxelGrid, frames, camera, filled
             continue
         share = np.bincount(labels[near], minlength=3) / near.sum()
         faces[name] = "measured" if share[OBSERVED] >= 0.5 else "inferred" if share[INFERRED] >= share[UNSEEN] else "unseen"
+        if faces[name] != "measured" and support is not None and -sign * support.normal[axis] >= SUPPORT_FACING_COS:
+            on_plane = support.height(points[near]) <= support.band + reach
+            if on_plane.mean() >= 0.5:
+                faces[name] = "support"
     return SurfaceLabels(labels, shares, faces)
 
 

@@ -46,6 +46,10 @@ def test_a_box_on_a_table_is_reconstructed_without_the_table(tmp_path):
     np.testing.assert_allclose(plane["normal"], [0, 1, 0], atol=0.01)
     assert plane["offset_mm"] == pytest.approx(BOX[1] / 2 * 1000, abs=1.0)  # the table's top, 40 mm below the centre
     np.testing.assert_allclose(rec.extents, BOX, atol=0.003)
+    # no frame saw the underside, but the table bounds it: its extent is no guess, and no warning names it
+    assert rec.surface.faces["-y (bottom)"] == "support"
+    assert "-y (bottom)" not in [face for face, _ in rec.surface.unmeasured_faces()]
+    assert all(state == "measured" for face, state in rec.surface.faces.items() if face != "-y (bottom)")
     # the same frames without the plane: the table's measurement band stays, a slab out to the grid's margin
     slab = reconstruct_sequence(sequence, annotation, support_plane=False)
     assert slab.extents[0] > BOX[0] + 0.01 and slab.extents[2] > BOX[2] + 0.01

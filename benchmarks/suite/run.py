@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from evaluate.annotation_quality import extents_error_mm, pose_scores, posed_fscore, revolution_fscore, shape_scores, true_surface
+from reconstruct.seen import BOUNDED
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence, open_sequence
 from sequences.synth.truth import truth_annotation
@@ -93,7 +94,7 @@ def reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Tru
     seconds = time.perf_counter() - start
     reported = None if recon.surface is None else recon.surface.shares["observed"]
     shape = shape_scores(recon.mesh, recon.poses, surface, truth.poses)
-    measured = None if recon.surface is None else sorted(f for f, state in recon.surface.faces.items() if state == "measured")
+    measured = None if recon.surface is None else sorted(f for f, state in recon.surface.faces.items() if state in BOUNDED)
     return {
         "posed_f5": posed_fscore(recon.mesh, recon.poses, surface, truth.poses),
         **shape,
