@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     scored = [r for r in rows if "observed_recall5" in r]
     met = sum(not r["goals_missed"] for r in scored)
     text = (f"# Reconstruction on real frames (YCB-Video 0001, 0002), from the true poses\n\nSee benchmarks/reconstruct_real.py. "
-            f"{len(scored)} of {len(rows)} objects scored; {met} meet every goal judged here "
+            f"{len(scored)} of {len(rows)} objects scored; {met} meet{'s' if met == 1 else ''} every goal judged here "
             f"({', '.join(g[0] for g in GOALS)}).\n\n{table(rows)}\n")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
