@@ -55,6 +55,6 @@ def start(args: list[str], log: Path, timeout: float = 120.0, environment: dict[
     child = AnnotateProcess(args, log, environment)
     try:
         return child, child.printed(URL_PATTERN, timeout).group(1)
-    except RuntimeError:
+    except BaseException:  # no URL, or an interrupt while waiting: the child must not outlive the caller
         child.stop()
         raise

@@ -83,7 +83,8 @@ def table(rows: list[dict]) -> str:
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         if "observed_recall5" not in r:
-            lines.append(f"| {r['video']} | {r['object']} | {r['true_surface']} | – | – | – | – | – | – | not scored |")
+            why = f"reconstruction failed: {r['reconstruct_error']}" if "reconstruct_error" in r else "not scored"
+            lines.append(f"| {r['video']} | {r['object']} | {r['true_surface']} | – | – | – | – | – | – | {why} |")
             continue
         reported = r.get("observed_share_reported")
         lines.append(f"| {r['video']} | {r['object']} | {r['true_surface']} | {r['observed_share_truth']:.0%} ({'–' if reported is None else f'{reported:.0%}'}) | "

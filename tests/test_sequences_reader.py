@@ -105,8 +105,9 @@ def test_a_window_backprojects_the_same_points_less_those_outside(stride):
     rng = np.random.default_rng(4)
     depth = np.where(rng.random((480, 640)) < 0.7, rng.uniform(0.4, 2.0, (480, 640)), 0.0).astype(np.float32)
     mask = rng.random((480, 640)) < 0.8
-    corners = np.array([[-0.1, -0.05, 0.8], [0.12, 0.07, 0.9], [0.0, 0.0, 1.2]])  # camera frame
+    corners = np.array([[-0.0935, -0.05, 0.8], [0.12, 0.07, 0.9], [0.0, 0.0, 1.2]])  # camera frame
     rows, cols = cam.window(corners)
+    assert rows.start % 6 and cols.start % 6  # starts off every stride's grid: the first row and column are rounded up
     uv, _ = cam.project(corners)
     assert cols.start <= np.floor(uv[:, 0].min()) - 1 and cols.stop >= np.ceil(uv[:, 0].max()) + 2
     assert rows.start <= np.floor(uv[:, 1].min()) - 1 and rows.stop >= np.ceil(uv[:, 1].max()) + 2
@@ -115,6 +116,13 @@ def test_a_window_backprojects_the_same_points_less_those_outside(stride):
     v, u = np.divmod(full_index, 640)
     inside = (v >= rows.start) & (v < rows.stop) & (u >= cols.start) & (u < cols.stop)
     assert np.array_equal(index, full_index[inside]) and np.array_equal(points, full[inside])
+    # a window clipped at the image's border holds the border's pixels
+    edge = cam.window(np.array([[0.2, 0.1, 0.6], [0.9, 0.5, 0.7]]))
+    assert edge[0].stop == 480 and edge[1].stop == 640
+    points, index = cam.backproject(depth, stride=stride, window=edge)
+    clipped = cam.backproject(depth, stride=stride)[1]
+    cv, cu = np.divmod(clipped, 640)
+    assert np.array_equal(index, clipped[(cv >= edge[0].start) & (cu >= edge[1].start)])
     # a point behind the camera bounds nothing: the whole image
     assert cam.window(np.array([[0.0, 0.0, 1.0], [0.1, 0.0, -0.2]])) == (slice(0, 480), slice(0, 640))
 
