@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -35,13 +34,13 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from evaluate.annotation_quality import true_surface  # noqa: E402
-from sequences.errors import InputError, run_cli  # noqa: E402
+from real_frames import videos_objects, write_report  # noqa: E402
+from sequences.errors import run_cli  # noqa: E402
 from sequences.reader import open_sequence  # noqa: E402
 from sequences.truth import Truth  # noqa: E402
-from sequences.ycbv import load_ycbv_truth, ycbv_objects  # noqa: E402
+from sequences.ycbv import load_ycbv_truth  # noqa: E402
 from suite.run import RECONSTRUCTION_GOALS, measured_frames, missed_goals, reconstruction_scores, true_pose_annotation  # noqa: E402
-
-SHARED = REPO.parent / "shared" / "data"
+from suite.spec import SHARED  # noqa: E402
 #: Model points within this (m, 99th percentile) of their convex hull make the hull the true surface.
 HULL_TOLERANCE = 0.003
 #: The goals judged here: the issue's, less the time (20 frames) and the symmetric-shape goal (no such shape here).
@@ -98,25 +97,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shared", default=str(SHARED), help="../shared/data")
     parser.add_argument("--out", default=str(REPO / "build" / "real-reconstruction"))
     args = parser.parse_args(argv)
-    videos = sorted(p for p in (Path(args.shared) / "ycbv_real").glob("[0-9]*") if p.is_dir())
-    if not videos:
-        raise InputError(Path(args.shared) / "ycbv_real", "no YCB-Video video folders here (../shared/data must lie beside the repository)")
     rows = []
-    for root in videos:
-        for name in ycbv_objects(root):  # a few objects per video
-            rows.append(run_object(root, name))
-            r = rows[-1]
-            print(f"{root.name} {name}: " + (f"P5 {r['observed_precision5']:.3f} R5 {r['observed_recall5']:.3f}" if "observed_recall5" in r else r["true_surface"]), flush=True)
+    for root, name in videos_objects(args.shared):
+        rows.append(run_object(root, name))
+        r = rows[-1]
+        print(f"{root.name} {name}: " + (f"P5 {r['observed_precision5']:.3f} R5 {r['observed_recall5']:.3f}" if "observed_recall5" in r else r["true_surface"]), flush=True)
     scored = [r for r in rows if "observed_recall5" in r]
     met = sum(not r["goals_missed"] for r in scored)
     text = (f"# Reconstruction on real frames (YCB-Video 0001, 0002), from the true poses\n\nSee benchmarks/reconstruct_real.py. "
             f"{len(scored)} of {len(rows)} objects scored; {met} meet{'s' if met == 1 else ''} every goal judged here "
             f"({', '.join(g[0] for g in GOALS)}).\n\n{table(rows)}\n")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(rows, indent=1, default=float))
-    (out / "README.md").write_text(text)
-    print(text)
+    write_report(args.out, rows, text)
     return 0
 
 

@@ -18,7 +18,6 @@ Goal (tracking issue): drift <= 1 deg and <= 2 mm over the 20 frames, never wors
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -26,15 +25,17 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
 sys.path.insert(0, str(REPO))
 
 from evaluate.metrics.pose_errors import rotation_error  # noqa: E402
-from sequences.errors import InputError, run_cli  # noqa: E402
+from real_frames import videos_objects, write_report  # noqa: E402
+from sequences.errors import run_cli  # noqa: E402
 from sequences.reader import open_sequence  # noqa: E402
 from sequences.synth.truth import truth_annotation  # noqa: E402
-from sequences.ycbv import load_ycbv_truth, ycbv_objects  # noqa: E402
+from sequences.ycbv import load_ycbv_truth  # noqa: E402
+from suite.spec import SHARED  # noqa: E402
 
-SHARED = REPO.parent / "shared" / "data"
 #: The placements: (name, degrees, metres) off the true first box at most.
 PLACEMENTS = (("exact", 0.0, 0.0), ("off 3°/5 mm", 3.0, 0.005))
 DRIFT_GOAL = (1.0, 2.0)  # degrees, millimetres
@@ -107,23 +108,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, help="the chains engine's worker processes")
     parser.add_argument("--engine", choices=("graph", "chains"), help="tracking engine (default: annotate.engines' default)")
     args = parser.parse_args(argv)
-    videos = sorted(p for p in (Path(args.shared) / "ycbv_real").glob("[0-9]*") if p.is_dir())
-    if not videos:
-        raise InputError(Path(args.shared) / "ycbv_real", "no YCB-Video video folders here (../shared/data must lie beside the repository)")
     rows = []
-    for root in videos:
-        for name in ycbv_objects(root):  # a few objects per video
-            rows.extend(run_object(root, name, args.workers, args.engine))
-            print(f"{root.name} {name}: " + ", ".join(f"{r['placement']} {r['drift_max_deg']:.2f} deg {r['drift_max_mm']:.1f} mm" for r in rows[-2:]), flush=True)
+    for root, name in videos_objects(args.shared):
+        rows.extend(run_object(root, name, args.workers, args.engine))
+        print(f"{root.name} {name}: " + ", ".join(f"{r['placement']} {r['drift_max_deg']:.2f} deg {r['drift_max_mm']:.1f} mm" for r in rows[-2:]), flush=True)
     met = sum(r["meets_goal"] for r in rows)
     text = (f"# Tracking on real frames (YCB-Video 0001, 0002)\n\nEach object tracked from one box in the first frame; drift against the true "
             f"motion over the 20 frames (see benchmarks/run_real.py). Goal: <= {DRIFT_GOAL[0]:g} deg and <= {DRIFT_GOAL[1]:g} mm, never worse than "
             f"copying the first box: met in {met} of {len(rows)} runs.\n\n{table(rows)}\n")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(rows, indent=1))
-    (out / "README.md").write_text(text)
-    print(text)
+    write_report(args.out, rows, text)
     return 0
 
 

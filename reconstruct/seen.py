@@ -26,6 +26,8 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from evaluate.geometry import box_corners
+
 from .carving import VoxelGrid
 from .support import SupportPlane
 
@@ -93,7 +95,7 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
     scene.add_triangles(o3d.core.Tensor(points.astype(np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
     observed = np.zeros(len(points), bool)
     low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
-    corners = np.where(np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1).astype(bool), high, low)  # (8, 3)
+    corners = box_corners(high - low) + (high + low) / 2
     for pose, depth in frames:  # one ray cast and one tree per frame, over the points not yet observed
         todo = np.flatnonzero(~observed)
         if not len(todo):

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from evaluate.geometry import box_corners
 from sequences.camera import Camera
 from sequences.sensor_noise import depth_sigma
 
@@ -86,7 +87,7 @@ def _candidates(frames: Iterable[tuple[np.ndarray, np.ndarray]], camera: Camera,
     high = low + grid.voxel_size * np.asarray(grid.shape)
     reach = SHELL * np.asarray(extents, dtype=np.float64) / 2
     points, depths, which, within, within_depths, centres = [], [], [], [], [], []
-    shell = np.where(np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1).astype(bool), high + reach, low - reach)  # (8, 3)
+    shell = box_corners(high - low + 2 * reach) + (high + low) / 2
     for pose, depth in frames:
         centres.append(-pose[:3, :3].T @ pose[:3, 3])
         window = camera.window(shell @ pose[:3, :3].T + pose[:3, 3])  # only the pixels the shell projects to
