@@ -47,8 +47,12 @@ def raw_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def obj_text(mesh: trimesh.Trimesh, name: str) -> str:
-    """OBJ text (vertices and faces only) of a mesh already in raw axes."""
-    return trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_color=False, include_texture=False, header=f"{name}: reconstruct-sequence (REDWOOD75 raw axes, metres)")
+    """OBJ text (vertices to 8 decimals, faces) of a mesh already in raw axes: the lines trimesh's exporter writes,
+    formatted in one pass (a third of its time)."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64).ravel().tolist()
+    faces = (np.asarray(mesh.faces, dtype=np.int64) + 1).ravel().tolist()
+    return "".join([f"# {name}: reconstruct-sequence (REDWOOD75 raw axes, metres)\n", "v %.8f %.8f %.8f\n" * (len(vertices) // 3) % tuple(vertices),
+                    "f %d %d %d\n" * (len(faces) // 3) % tuple(faces)])
 
 
 def sequence_entry(reconstruction: Reconstruction, sequence: Sequence) -> dict:
@@ -88,7 +92,9 @@ def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotatio
         entry = sequence_entry(reconstruction, sequence)
         frame_masks: dict[str, np.ndarray] = {}
         if masks:
-            frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
+            frame_masks = reconstruction.masks
+            if frame_masks is None:
+                frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
             for frame_id, mask in frame_masks.items():
                 stage(f"masks/{name}/{check_name(frame_id, 'frame id', out_dir)}.png", mask_png_bytes(mask))
         report = dict(reconstruction.report)

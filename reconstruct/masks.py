@@ -51,5 +51,5 @@ def mask_png_bytes(mask: np.ndarray) -> bytes:
     from PIL import Image
 
     buffer = io.BytesIO()
-    Image.fromarray(np.where(mask, 255, 0).astype(np.uint8)).save(buffer, format="PNG")
+    Image.fromarray(np.where(mask, 255, 0).astype(np.uint8)).save(buffer, format="PNG", compress_level=1)  # a mask is runs: level 1 is near the best
     return buffer.getvalue()

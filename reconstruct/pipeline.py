@@ -19,6 +19,7 @@ from sequences.errors import InputError
 from sequences.reader import Sequence
 
 from . import SURFACE, SURFACES, carving, evidence, meshing, support, tsdf  # noqa: F401 (SURFACE, SURFACES: defined there, light to import)
+from .masks import render_masks
 from .revolution import fit_revolution, revolved_fill
 from .seen import SurfaceLabels, label_surface
 from .tight_box import fit_tight_box
@@ -47,6 +48,7 @@ class Reconstruction:
     centre_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # tight-box centre in the annotated object frame
     voxel_size: float = 0.002
     surface: SurfaceLabels | None = None  # what was seen: per-vertex labels, box faces bounded by a measurement
+    masks: dict[str, np.ndarray] | None = None  # frame id -> (H, W) bool instance mask (reconstruct.masks), when asked for
 
 
 #: Frames flagged for review (tracking's quality flags) are left out of the carving unless fewer than
@@ -147,6 +149,7 @@ def reconstruct_sequence(
     include_flagged: bool = False,
     surface: str = SURFACE,
     ahead: bool = True,
+    masks: bool = False,
 ) -> Reconstruction:
     """Carve, mesh, smooth, fit the tight box of one annotated sequence and label what was seen.
 
@@ -163,6 +166,8 @@ def reconstruct_sequence(
     surface and the carved hull elsewhere (:mod:`reconstruct.tsdf`). ``surface`` of the result labels the mesh
     observed, inferred or unseen (:mod:`reconstruct.seen`). ``ahead``: decode and prepare the next frame on a second
     thread while this one is carved (off: one thread, the same result; a batch's units, one per core, turn it off).
+    ``masks``: render every posed frame's instance mask too (:func:`reconstruct.masks.render_masks`; with ``ahead``
+    on a second thread while the labels are made).
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -241,9 +246,15 @@ def reconstruct_sequence(
     mesh, new_poses, centre, extents = fit_tight_box(mesh, poses)
     timings["tight_box"] = time.perf_counter() - start
     start = time.perf_counter()
-    # what was seen: the carving frames' depth once more, against the mesh at their poses
-    labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre, plane)
-    timings["labels"] = time.perf_counter() - start
+    with ThreadPoolExecutor(max_workers=1) as pool:  # the masks render on a second core while the labels are made
+        rendering = pool.submit(render_masks, mesh, new_poses, sequence.camera, sequence.depth) if masks and ahead else None
+        # what was seen: the carving frames' depth once more, against the mesh at their poses
+        labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre, plane)
+        timings["labels"] = time.perf_counter() - start
+        start = time.perf_counter()
+        frame_masks = rendering.result() if rendering is not None else render_masks(mesh, new_poses, sequence.camera, sequence.depth) if masks else None
+    if masks:
+        timings["masks"] = time.perf_counter() - start
     say("mesh", 1, 1)
 
     solid_voxels = int(meshing.largest_component(occupied).sum())
@@ -291,4 +302,5 @@ def reconstruct_sequence(
         centre_shift=centre,
         voxel_size=voxel_size,
         surface=labels,
+        masks=frame_masks,
     )

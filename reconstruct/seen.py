@@ -83,6 +83,18 @@ def _lookup(zone: np.ndarray, grid: VoxelGrid, points: np.ndarray) -> np.ndarray
     return out
 
 
+def _near_cells(measured: np.ndarray, low: np.ndarray, cells: tuple[int, int, int]) -> np.ndarray:
+    """(cells + 2) bool, padded by one cell on every side: the cells (side OBSERVED_TOLERANCE from ``low``, index + 1)
+    holding a ``measured`` point or next to one."""
+    padded = np.array(cells) + 2
+    index = np.minimum(((measured - low) / OBSERVED_TOLERANCE).astype(np.int64), np.array(cells) - 1) + 1
+    occupied = np.unique(np.ravel_multi_index(index.T, padded))
+    steps = np.ravel_multi_index(np.indices((3, 3, 3)).reshape(3, -1), padded) - np.ravel_multi_index((1, 1, 1), padded)
+    near = np.zeros(int(np.prod(padded)), bool)
+    near[(occupied[:, None] + steps[None]).ravel()] = True  # the 3x3x3 neighbourhood of each cell
+    return near.reshape(padded)
+
+
 def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np.ndarray:
     """(V,) bool: which surface ``points`` (V, 3, object frame; a mesh's vertices with its ``faces``) some frame observed.
 
@@ -96,6 +108,8 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
     observed = np.zeros(len(points), bool)
     low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
     corners = box_corners(high - low) + (high + low) / 2
+    cells = tuple(int(n) for n in np.floor((high - low) / OBSERVED_TOLERANCE) + 1)
+    cell_of = np.minimum(((points - low) / OBSERVED_TOLERANCE).astype(np.int64), np.array(cells) - 1) + 1  # padded
     for pose, depth in frames:  # one ray cast and one tree per frame, over the points not yet observed
         todo = np.flatnonzero(~observed)
         if not len(todo):
@@ -107,6 +121,13 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
         measured = measured[np.all((measured >= low) & (measured <= high), axis=1)]
         if not len(measured):
             continue
+        # near a measured point first, and only those points need the ray cast: a point within the tolerance of one
+        # lies in its cell of side OBSERVED_TOLERANCE or a neighbouring one (a cheap superset), then the exact test
+        todo = todo[_near_cells(measured, low, cells)[tuple(cell_of[todo].T)]]
+        tree = cKDTree(measured, balanced_tree=False, compact_nodes=False)
+        todo = todo[np.isfinite(tree.query(points[todo], distance_upper_bound=OBSERVED_TOLERANCE, workers=2)[0])]
+        if not len(todo):
+            continue
         centre = -R.T @ t
         ray = points[todo] - centre
         length = np.linalg.norm(ray, axis=1)
@@ -114,8 +135,7 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
         answer = scene.cast_rays(o3d.core.Tensor(rays))
         # the ray's first hit is the point, on a face turned to the camera (a grazing ray slips past an edge)
         visible = (answer["t_hit"].numpy() > length - 0.001) & (np.einsum("ij,ij->i", answer["primitive_normals"].numpy(), rays[:, 3:]) < 0)
-        near = cKDTree(measured).query(points[todo[visible]], distance_upper_bound=OBSERVED_TOLERANCE)[0]
-        observed[todo[visible][np.isfinite(near)]] = True
+        observed[todo[visible]] = True
     return observed
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from batch.units import file_bytes, listing, sha256_text
@@ -31,10 +32,21 @@ from .transaction import ANNOTATIONS, OutLock, recover
 MARKERS = ".batch"
 
 
-def prepare(root: str | Path, annotation_file: str | None, fmt: str) -> tuple[Sequence, Annotation, Path, bytes]:
-    """Open and check a sequence and its document before any work: (sequence, annotation, document path, its bytes)."""
+def prepare(root: str | Path, annotation_file: str | None, fmt: str, ahead: bool = False) -> tuple[Sequence, Annotation, Path, bytes]:
+    """Open and check a sequence and its document before any work: (sequence, annotation, document path, its bytes).
+    ``ahead``: the frames decode on a second thread while the reconstruction's modules import."""
     sequence = open_sequence(root)
-    sequence.check()  # every frame decodes and the depth scale is plausible: before any work starts
+    # every frame decodes and the depth scale is plausible before any work starts; the carving reads the depth the
+    # check decoded (Sequence keeps it)
+    if ahead:
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            checked = pool.submit(sequence.check)
+            import open3d  # noqa: F401 (with trimesh, the slow imports: made while the frames decode, the GIL let go)
+
+            from . import export, pipeline  # noqa: F401
+            checked.result()
+    else:
+        sequence.check()
     path = annotation_path(root, annotation_file)
     data = file_bytes(path)
     annotation = load_annotation(path, default_sequence=sequence.name)
@@ -97,9 +109,10 @@ def reconstruct(root: str | Path, options: dict, annotation_file: str | None = N
     decode the next frame on a second thread (:func:`reconstruct.pipeline.reconstruct_sequence`)."""
     from .pipeline import reconstruct_sequence
 
-    sequence, annotation, _, document = prepare(root, annotation_file, options["format"])
+    sequence, annotation, _, document = prepare(root, annotation_file, options["format"], ahead)
     reconstruction = reconstruct_sequence(sequence, annotation, options["voxel_size"], progress=progress, smoothing=options["smoothing"],
-                                          include_flagged=options["include_flagged"], surface=options["surface"], ahead=ahead)
+                                          include_flagged=options["include_flagged"], surface=options["surface"], ahead=ahead,
+                                          masks=options["masks"] and options["format"] == "redwood75")  # (BOP and NOCS render their own)
     return reconstruction, sequence, annotation, input_state(root, options, document)
 
 

@@ -12,7 +12,8 @@ from PIL import Image
 
 from evaluate.geometry import RAW_FROM_SHAPENET, quat_to_matrix
 from reconstruct.cli import main
-from reconstruct.export import export_redwood
+from reconstruct.export import export_redwood, obj_text, raw_mesh
+from reconstruct.masks import render_masks
 from reconstruct.pipeline import reconstruct_sequence
 from sequences.annotation import load_annotation
 from sequences.errors import InputError
@@ -164,3 +165,28 @@ def test_a_reexport_swaps_the_mask_folder_whole_and_another_format_is_refused(ex
     with pytest.raises(InputError, match="bop export"):
         export_redwood(rec, sequence, annotation, bop)
     assert sorted(p.name for p in bop.iterdir()) == ["models"]
+
+
+def test_masks_made_beside_the_labels_are_those_the_export_renders(exported):
+    scene, sequence, rec, out, path = exported
+    annotation = load_annotation(scene.root / "annotation.yaml")
+    with_masks = reconstruct_sequence(sequence, annotation, voxel_size=0.003, masks=True)
+    rendered = render_masks(with_masks.mesh, with_masks.poses, sequence.camera, sequence.depth)
+    assert list(with_masks.masks) == list(rendered) == sequence.ids
+    for frame_id in sequence.ids:
+        np.testing.assert_array_equal(with_masks.masks[frame_id], rendered[frame_id])
+        written = np.asarray(Image.open(out / "masks" / "mug_0007" / f"{frame_id}.png")) > 0  # the fixture's export rendered its own
+        np.testing.assert_array_equal(written, rendered[frame_id])
+    assert rec.masks is None  # not asked for
+
+
+def test_obj_text_writes_the_lines_trimesh_writes(exported):
+    rec = exported[2]
+    mesh = raw_mesh(rec.mesh)
+    ours = obj_text(mesh, "mug_0007").splitlines()
+    theirs = trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_color=False, include_texture=False,
+                                             header="mug_0007: reconstruct-sequence (REDWOOD75 raw axes, metres)").splitlines()
+    assert ours == [line for line in theirs if line]
+    back = trimesh.load(exported[3] / "mug_0007.obj", process=False)
+    np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-8)
+    np.testing.assert_array_equal(back.faces, mesh.faces)

@@ -15,7 +15,7 @@ import trimesh
 from test_reconstruct_scenes import cup_mesh, fscore, write_scene, y_cylinder
 
 from reconstruct.pipeline import reconstruct_sequence
-from reconstruct.seen import INFERRED, OBSERVED, UNSEEN
+from reconstruct.seen import INFERRED, OBSERVED, PIXEL_STRIDE, UNSEEN
 from sequences.annotation import load_annotation
 from sequences.reader import open_sequence
 from sequences.synth.shapes import procedural_mesh
@@ -103,3 +103,53 @@ def test_reconstruct_sequence_warns_about_a_box_face_on_unseen_surface(tmp_path)
     assert len(warnings) == 1 and "bowl_0003" in warnings[0] and "-y (bottom)" in warnings[0] and "underside" in warnings[0]
     ply = trimesh.load(tmp_path / "out" / "reports" / "bowl_0003.ply", process=False)
     assert len(np.unique(ply.visual.vertex_colors[:, :3], axis=0)) >= 2  # observed and unseen tinted apart
+
+
+def _observed_by_every_ray(points, faces, frames, camera, tolerance):
+    """A second implementation of reconstruct.seen.observed_points: every point cast and searched in every frame."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(points.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
+    observed = np.zeros(len(points), bool)
+    for pose, depth in frames:
+        R, t = pose[:3, :3], pose[:3, 3]
+        measured = (camera.backproject(depth, stride=PIXEL_STRIDE)[0] - t) @ R
+        measured = measured[np.all((measured >= low) & (measured <= high), axis=1)]
+        centre = -R.T @ t
+        ray = points - centre
+        length = np.linalg.norm(ray, axis=1)
+        rays = np.concatenate([np.broadcast_to(centre, ray.shape), ray / length[:, None]], axis=1).astype(np.float32)
+        answer = scene.cast_rays(o3d.core.Tensor(rays))
+        visible = (answer["t_hit"].numpy() > length - 0.001) & (np.einsum("ij,ij->i", answer["primitive_normals"].numpy(), rays[:, 3:]) < 0)
+        near = np.isfinite(cKDTree(measured).query(points, distance_upper_bound=tolerance)[0])
+        observed |= visible & near
+    return observed
+
+
+def test_observed_points_agree_with_casting_every_point_in_every_frame():
+    from scipy.spatial.transform import Rotation
+
+    from evaluate.rendering import MeshRenderer
+    from reconstruct.seen import OBSERVED_TOLERANCE, observed_points
+    from sequences.camera import Camera
+
+    camera = Camera(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
+    mesh = procedural_mesh("mug", np.random.default_rng(4))
+    rng = np.random.default_rng(5)
+    frames = []
+    for angles in ([10, 0, 0], [40, 70, 5], [-30, 160, 0], [80, 250, 10]):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
+        pose[:3, 3] = [0.01, -0.02, 0.55]
+        depth = MeshRenderer(mesh, camera).depth(pose)
+        depth = np.where(depth > 0, depth + rng.normal(0, 0.0015, depth.shape), 0).astype(np.float32)  # sensor-like noise
+        depth[:, :300] *= rng.uniform(size=(480, 300)) > 0.5  # half the pixels of the left part missing
+        frames.append((pose, depth))
+    points, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    ours = observed_points(points, faces, iter(frames), camera)
+    theirs = _observed_by_every_ray(points, faces, frames, camera, OBSERVED_TOLERANCE)
+    assert 0.2 < theirs.mean() < 0.95  # some seen, some never
+    np.testing.assert_array_equal(ours, theirs)
