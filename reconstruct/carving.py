@@ -159,6 +159,11 @@ class VoxelGrid:
     def axis_coordinates(self, axis: int) -> np.ndarray:
         return self.origin[axis] + self.voxel_size * np.arange(self.shape[axis])
 
+    def corners(self) -> np.ndarray:
+        """(8, 3) centres of the grid's corner voxels (object frame, metres), float64: its projection's hull."""
+        bits = np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1)
+        return np.asarray(self.origin, np.float64) + self.voxel_size * (np.array(self.shape) - 1) * bits
+
 
 def inside_box(grid: "VoxelGrid", extents) -> np.ndarray:
     """(nx, ny, nz) bool: voxels whose centre lies inside the box of full sides ``extents`` centred on the origin."""
@@ -290,8 +295,7 @@ def _frame_images(depth: np.ndarray, rows: tuple[int, int] | None, fx: float, to
 def grid_rows(grid: VoxelGrid, pose: np.ndarray, K: np.ndarray, height: int) -> tuple[int, int] | None:
     """(first, last) image rows the grid's voxel centres project to at ``pose`` (object to camera), or None
     when part of the grid lies behind the camera. The grid's image is the hull of its 8 corners' images."""
-    corners = np.asarray(grid.origin, np.float64)[:, None] + grid.voxel_size * (np.array(grid.shape) - 1)[:, None] * np.stack(
-        np.unravel_index(np.arange(8), (2, 2, 2)))
+    corners = grid.corners().T
     q = K @ (np.asarray(pose, np.float64)[:3, :3] @ corners + np.asarray(pose, np.float64)[:3, 3:4])
     if q[2].min() <= 1e-3:
         return None

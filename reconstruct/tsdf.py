@@ -74,8 +74,7 @@ def object_depth(depth: np.ndarray, pose: np.ndarray, camera: Camera, near_solid
     pose = np.asarray(pose, dtype=np.float64)
     R, t = pose[:3, :3], pose[:3, 3]
     shape = np.array(grid.shape)
-    corners = np.asarray(grid.origin)[None, :] + grid.voxel_size * (shape - 1)[None, :] * np.stack(np.unravel_index(np.arange(8), (2, 2, 2)), axis=1)
-    rows, cols = camera.window(corners @ R.T + t)
+    rows, cols = camera.window(grid.corners() @ R.T + t)
     out = np.zeros_like(depth)
     crop = depth[rows, cols]
     vv, uu = np.nonzero(crop > 0)
