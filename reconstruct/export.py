@@ -92,8 +92,8 @@ def export_redwood(reconstruction: Reconstruction, sequence: Sequence, annotatio
         entry = sequence_entry(reconstruction, sequence)
         frame_masks: dict[str, np.ndarray] = {}
         if masks:
-            frame_masks = reconstruction.masks
-            if frame_masks is None:
+            frame_masks = reconstruction.masks()
+            if frame_masks is None:  # none rendered with it, or its mesh or poses replaced since
                 frame_masks = render_masks(reconstruction.mesh, reconstruction.poses, sequence.camera, sequence.depth)
             for frame_id, mask in frame_masks.items():
                 stage(f"masks/{name}/{check_name(frame_id, 'frame id', out_dir)}.png", mask_png_bytes(mask))

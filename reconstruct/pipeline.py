@@ -48,7 +48,23 @@ class Reconstruction:
     centre_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # tight-box centre in the annotated object frame
     voxel_size: float = 0.002
     surface: SurfaceLabels | None = None  # what was seen: per-vertex labels, box faces bounded by a measurement
-    masks: dict[str, np.ndarray] | None = None  # frame id -> (H, W) bool instance mask (reconstruct.masks), when asked for
+    rendered: "RenderedMasks | None" = field(default=None, repr=False, compare=False)  # the masks, when asked for
+
+    def masks(self) -> dict[str, np.ndarray] | None:
+        """Frame id -> (H, W) bool instance mask (reconstruct.masks) rendered with the reconstruction, or None when none
+        were asked for or its mesh or poses were replaced since (then render them anew)."""
+        if self.rendered is None or self.rendered.mesh is not self.mesh or self.rendered.poses is not self.poses:
+            return None
+        return self.rendered.masks
+
+
+@dataclass(frozen=True)
+class RenderedMasks:
+    """Instance masks and the mesh and poses (the very objects) they were rendered from."""
+
+    masks: dict[str, np.ndarray]
+    mesh: trimesh.Trimesh
+    poses: dict[str, np.ndarray]
 
 
 #: Frames flagged for review (tracking's quality flags) are left out of the carving unless fewer than
@@ -167,7 +183,7 @@ def reconstruct_sequence(
     observed, inferred or unseen (:mod:`reconstruct.seen`). ``ahead``: decode and prepare the next frame on a second
     thread while this one is carved (off: one thread, the same result; a batch's units, one per core, turn it off).
     ``masks``: render every posed frame's instance mask too (:func:`reconstruct.masks.render_masks`; with ``ahead``
-    on a second thread while the labels are made).
+    on a second thread while the labels are made; ``timings["masks"]`` is then the time they took beyond the labels').
     """
     source = str(annotation_path(sequence.root))
     if not (np.isfinite(voxel_size) and 0.0002 <= voxel_size <= 0.05):
@@ -254,10 +270,10 @@ def reconstruct_sequence(
         start = time.perf_counter()
         frame_masks = rendering.result() if rendering is not None else render_masks(mesh, new_poses, sequence.camera, sequence.depth) if masks else None
     if masks:
-        timings["masks"] = time.perf_counter() - start
+        timings["masks"] = time.perf_counter() - start  # beyond the labels' time, when rendered beside them
     say("mesh", 1, 1)
 
-    solid_voxels = int(meshing.largest_component(occupied).sum())
+    solid_voxels = int((solid if fused is not None else meshing.largest_component(occupied)).sum())  # (the fusion's solid is that component)
     carved = set(ids)
     report = {
         "sequence": annotation.sequence or sequence.name,
@@ -279,7 +295,7 @@ def reconstruct_sequence(
         "centre_shift": [float(x) for x in centre],
         "mesh_vertices": int(len(mesh.vertices)),
         "mesh_faces": int(len(mesh.faces)),
-        "watertight": bool(mesh.is_watertight),
+        "watertight": meshing.is_watertight(mesh.faces),
         "volume": meshing.signed_volume(mesh),
         "timings": timings,
     }
@@ -302,5 +318,5 @@ def reconstruct_sequence(
         centre_shift=centre,
         voxel_size=voxel_size,
         surface=labels,
-        masks=frame_masks,
+        rendered=None if frame_masks is None else RenderedMasks(frame_masks, mesh, new_poses),
     )

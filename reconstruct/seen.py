@@ -83,15 +83,20 @@ def _lookup(zone: np.ndarray, grid: VoxelGrid, points: np.ndarray) -> np.ndarray
     return out
 
 
+#: The side (metres) of the cells that pre-select the points near a measured one: a hair over the tolerance, so that
+#: a pair within it, rounded per axis, never lies two cells apart.
+NEAR_CELL = OBSERVED_TOLERANCE * (1 + 1e-6)
+
+
 def _near_cells(measured: np.ndarray, low: np.ndarray, cells: tuple[int, int, int]) -> np.ndarray:
-    """(cells + 2) bool, padded by one cell on every side: the cells (side OBSERVED_TOLERANCE from ``low``, index + 1)
-    holding a ``measured`` point or next to one."""
+    """(cells + 2) bool, padded by one cell on every side: the cells (side NEAR_CELL from ``low``, index + 1) holding a
+    ``measured`` point (at or above ``low``) or next to one."""
     padded = np.array(cells) + 2
-    index = np.minimum(((measured - low) / OBSERVED_TOLERANCE).astype(np.int64), np.array(cells) - 1) + 1
+    index = np.minimum(((measured - low) / NEAR_CELL).astype(np.int64), np.array(cells) - 1) + 1
     occupied = np.unique(np.ravel_multi_index(index.T, padded))
     steps = np.ravel_multi_index(np.indices((3, 3, 3)).reshape(3, -1), padded) - np.ravel_multi_index((1, 1, 1), padded)
     near = np.zeros(int(np.prod(padded)), bool)
-    near[(occupied[:, None] + steps[None]).ravel()] = True  # the 3x3x3 neighbourhood of each cell
+    near[(occupied[:, None] + steps[None]).ravel()] = True  # the 3x3x3 neighbourhood of each cell (never wraps: padded)
     return near.reshape(padded)
 
 
@@ -108,8 +113,8 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
     observed = np.zeros(len(points), bool)
     low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
     corners = box_corners(high - low) + (high + low) / 2
-    cells = tuple(int(n) for n in np.floor((high - low) / OBSERVED_TOLERANCE) + 1)
-    cell_of = np.minimum(((points - low) / OBSERVED_TOLERANCE).astype(np.int64), np.array(cells) - 1) + 1  # padded
+    cells = tuple(int(n) for n in np.floor((high - low) / NEAR_CELL) + 1)
+    cell_of = np.minimum(((points - low) / NEAR_CELL).astype(np.int64), np.array(cells) - 1) + 1  # padded
     for pose, depth in frames:  # one ray cast and one tree per frame, over the points not yet observed
         todo = np.flatnonzero(~observed)
         if not len(todo):
@@ -122,10 +127,10 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
         if not len(measured):
             continue
         # near a measured point first, and only those points need the ray cast: a point within the tolerance of one
-        # lies in its cell of side OBSERVED_TOLERANCE or a neighbouring one (a cheap superset), then the exact test
+        # lies in its cell of side NEAR_CELL or a neighbouring one (a cheap superset), then the tree's test
         todo = todo[_near_cells(measured, low, cells)[tuple(cell_of[todo].T)]]
         tree = cKDTree(measured, balanced_tree=False, compact_nodes=False)
-        todo = todo[np.isfinite(tree.query(points[todo], distance_upper_bound=OBSERVED_TOLERANCE, workers=2)[0])]
+        todo = todo[np.isfinite(tree.query(points[todo], distance_upper_bound=OBSERVED_TOLERANCE)[0])]
         if not len(todo):
             continue
         centre = -R.T @ t

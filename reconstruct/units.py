@@ -41,9 +41,13 @@ def prepare(root: str | Path, annotation_file: str | None, fmt: str, ahead: bool
     if ahead:
         with ThreadPoolExecutor(max_workers=1) as pool:
             checked = pool.submit(sequence.check)
-            import open3d  # noqa: F401 (with trimesh, the slow imports: made while the frames decode, the GIL let go)
+            try:  # the slow imports (Open3D, trimesh, SciPy), made while the frames decode (the GIL let go)
+                import open3d  # noqa: F401
 
-            from . import export, pipeline  # noqa: F401
+                from . import export, pipeline  # noqa: F401
+            except BaseException:
+                checked.result()  # a bad frame is said first
+                raise
             checked.result()
     else:
         sequence.check()
@@ -107,9 +111,9 @@ def summary_of(reconstruction, path: Path, state: str) -> dict:
 def reconstruct(root: str | Path, options: dict, annotation_file: str | None = None, progress=None, ahead: bool = True):
     """Reconstruct one sequence (no files written): (reconstruction, sequence, annotation, input state). ``ahead``:
     decode the next frame on a second thread (:func:`reconstruct.pipeline.reconstruct_sequence`)."""
-    from .pipeline import reconstruct_sequence
-
     sequence, annotation, _, document = prepare(root, annotation_file, options["format"], ahead)
+    from .pipeline import reconstruct_sequence  # (imported by prepare while the frames were checked)
+
     reconstruction = reconstruct_sequence(sequence, annotation, options["voxel_size"], progress=progress, smoothing=options["smoothing"],
                                           include_flagged=options["include_flagged"], surface=options["surface"], ahead=ahead,
                                           masks=options["masks"] and options["format"] == "redwood75")  # (BOP and NOCS render their own)

@@ -212,3 +212,17 @@ def test_a_method_that_raises_or_exits_fails_its_samples(redwood75_dir, tmp_path
     assert all("SystemExit" in f["reason"] for f in methods["exits"]["failed"]) and len(methods["exits"]["failed"]) == methods["exits"]["samples"]
     assert all("ZeroDivisionError: bug" in f["reason"] for f in methods["raises"]["failed"])
     assert methods["oracle"]["failed"] == []
+
+
+def test_a_broken_frame_is_said_before_a_failed_import(scene, tmp_path, monkeypatch):
+    from reconstruct.units import prepare
+
+    root = _copy(scene, tmp_path)
+    victim = sorted((root / "depth").iterdir())[3]
+    victim.write_bytes(victim.read_bytes()[:200])
+    monkeypatch.setitem(sys.modules, "open3d", None)  # its import fails while the frames are checked
+    with pytest.raises(InputError, match=victim.name):
+        prepare(root, None, "redwood75", ahead=True)
+    victim.write_bytes((scene.root / "depth" / victim.name).read_bytes())  # mended: the import's own error then
+    with pytest.raises(ImportError):
+        prepare(root, None, "redwood75", ahead=True)

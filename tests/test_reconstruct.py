@@ -311,6 +311,30 @@ def test_largest_component_fills_enclosed_holes():
 # --- tight box -----------------------------------------------------------------------------------
 
 
+def test_face_components_are_trimesh_s_face_adjacency_components():
+    sphere = trimesh.creation.icosphere(3, 0.05)
+    far = trimesh.creation.box([0.02, 0.02, 0.02])
+    far.apply_translation([0.2, 0, 0])
+    touching = trimesh.creation.icosphere(1, 0.01)  # moved to share one vertex with the sphere: apart by its edges
+    touching.apply_translation(sphere.vertices[0] - touching.vertices[np.argmin(touching.vertices[:, 0])])
+    mesh = trimesh.util.concatenate([sphere, far, touching])
+    mesh.merge_vertices()
+    a, b = mesh.edges_unique[0]  # a fin: a third face on one of the sphere's edges, which then joins none of them
+    mesh = trimesh.Trimesh(np.vstack([mesh.vertices, [[0.0, 0.2, 0.0]]]), np.vstack([mesh.faces, [[a, b, len(mesh.vertices)]]]), process=False)
+    ours = meshing.face_components(mesh.faces)
+    theirs = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    assert len(np.unique(theirs)) == 4  # sphere, box, touching sphere, fin
+    pairs = np.unique(np.stack([ours, theirs], axis=1), axis=0)  # the same partition: labels map one to one
+    assert len(pairs) == len(np.unique(ours)) == len(np.unique(theirs))
+    assert len(meshing.largest_piece(mesh).faces) == len(sphere.faces)
+    assert len(meshing.face_components(np.zeros((0, 3), int))) == 0
+    # watertight: every edge held by two faces, as trimesh says
+    open_sphere = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)
+    for shape in (sphere, far, mesh, open_sphere, trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int))):
+        assert meshing.is_watertight(shape.faces) == shape.is_watertight
+    assert meshing.is_watertight(sphere.faces) and not meshing.is_watertight(open_sphere.faces)
+
+
 def test_tight_box_recentres_mesh_and_keeps_camera_points():
     mesh = trimesh.creation.box([0.02, 0.04, 0.06])
     mesh.apply_translation([0.01, -0.02, 0.005])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -147,7 +148,6 @@ def test_cli_several_sequences_one_failing(exported, tmp_path, capsys):
 def test_a_reexport_swaps_the_mask_folder_whole_and_another_format_is_refused(exported, tmp_path):
     """Exporting the sequence again with fewer frames leaves none of the old masks; a folder that holds a BOP export
     refuses a REDWOOD75 one (the formats are never mixed), untouched."""
-    import dataclasses
 
     scene, sequence, rec, out, path = exported
     annotation = load_annotation(scene.root / "annotation.yaml")
@@ -167,26 +167,34 @@ def test_a_reexport_swaps_the_mask_folder_whole_and_another_format_is_refused(ex
     assert sorted(p.name for p in bop.iterdir()) == ["models"]
 
 
-def test_masks_made_beside_the_labels_are_those_the_export_renders(exported):
+def test_masks_made_beside_the_labels_are_those_the_export_renders(exported, tmp_path):
     scene, sequence, rec, out, path = exported
     annotation = load_annotation(scene.root / "annotation.yaml")
     with_masks = reconstruct_sequence(sequence, annotation, voxel_size=0.003, masks=True)
     rendered = render_masks(with_masks.mesh, with_masks.poses, sequence.camera, sequence.depth)
-    assert list(with_masks.masks) == list(rendered) == sequence.ids
+    assert list(with_masks.masks()) == list(rendered) == sequence.ids
     for frame_id in sequence.ids:
-        np.testing.assert_array_equal(with_masks.masks[frame_id], rendered[frame_id])
+        np.testing.assert_array_equal(with_masks.masks()[frame_id], rendered[frame_id])
         written = np.asarray(Image.open(out / "masks" / "mug_0007" / f"{frame_id}.png")) > 0  # the fixture's export rendered its own
         np.testing.assert_array_equal(written, rendered[frame_id])
-    assert rec.masks is None  # not asked for
+    assert rec.masks() is None  # not asked for
+    # poses replaced after the rendering: the masks no longer hold, and an export renders those of its own frames
+    fewer = dataclasses.replace(with_masks, poses={f: with_masks.poses[f] for f in sequence.ids[:5]})
+    assert fewer.masks() is None
+    again = tmp_path / "again"
+    export_redwood(fewer, sequence, annotation, again)
+    assert sorted(p.stem for p in (again / "masks" / "mug_0007").glob("*.png")) == sequence.ids[:5]
+    moved = dataclasses.replace(with_masks, mesh=with_masks.mesh.copy())
+    assert moved.masks() is None
 
 
 def test_obj_text_writes_the_lines_trimesh_writes(exported):
     rec = exported[2]
     mesh = raw_mesh(rec.mesh)
-    ours = obj_text(mesh, "mug_0007").splitlines()
+    ours = obj_text(mesh, "mug_0007")
     theirs = trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_color=False, include_texture=False,
-                                             header="mug_0007: reconstruct-sequence (REDWOOD75 raw axes, metres)").splitlines()
-    assert ours == [line for line in theirs if line]
+                                             header="mug_0007: reconstruct-sequence (REDWOOD75 raw axes, metres)")
+    assert ours == theirs.rstrip("\n") + "\n"  # trimesh's lines, without its trailing blank line
     back = trimesh.load(exported[3] / "mug_0007.obj", process=False)
     np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-8)
     np.testing.assert_array_equal(back.faces, mesh.faces)
