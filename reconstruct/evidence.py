@@ -28,10 +28,8 @@ import numpy as np
 
 from .meshing import fill_holes, largest_component
 
-#: Voxels the hull's box may lie inside the carving's box on any side. Measured on the synthetic
-#: mugs (generator v4, seeds 0-3, true and 1 deg + 2 mm poses; largest pieces): seeds 1-3 shift by
-#: at most 1 voxel (the hull only opens the inside); seed 0, whose handle side is never seen, loses
-#: its handle (17 voxels); a can seen from 45 degrees of azimuth only loses its far half.
+#: Voxels the hull's box may lie inside the carving's box on any side: a hull that only opens the inside keeps
+#: the outline to a voxel; one that loses a part never seen (a mug's handle, a can's far half) moves it further.
 DEFAULT_BOX_SLACK = 1
 
 
