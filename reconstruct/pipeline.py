@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import trimesh
@@ -240,11 +241,11 @@ def reconstruct_sequence(
         unobserved = (result.free_count == 0) & (behind == 0)
         occupied = occupied & ~(unobserved & ~carving.inside_box(grid, annotation.extents * (1 + BOX_PRIOR_SLACK)))
     timings["symmetry"] = time.perf_counter() - start
+    solid = meshing.largest_component(occupied)
     fused = None
     if surface == "tsdf":
         say("fuse", 0, len(ids))
         start = time.perf_counter()
-        solid = meshing.largest_component(occupied)
         fused = tsdf.fuse(grid, _depth_frames(sequence, ids, poses, ahead), sequence.camera, solid)
         timings["fuse"] = time.perf_counter() - start
     say("mesh", 0, 1)
@@ -262,18 +263,22 @@ def reconstruct_sequence(
     mesh, new_poses, centre, extents = fit_tight_box(mesh, poses)
     timings["tight_box"] = time.perf_counter() - start
     start = time.perf_counter()
+    render = partial(render_masks, mesh, new_poses, sequence.camera, sequence.depth)
     with ThreadPoolExecutor(max_workers=1) as pool:  # the masks render on a second core while the labels are made
-        rendering = pool.submit(render_masks, mesh, new_poses, sequence.camera, sequence.depth) if masks and ahead else None
+        rendering = pool.submit(render) if masks and ahead else None
         # what was seen: the carving frames' depth once more, against the mesh at their poses
         labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre, plane)
         timings["labels"] = time.perf_counter() - start
         start = time.perf_counter()
-        frame_masks = rendering.result() if rendering is not None else render_masks(mesh, new_poses, sequence.camera, sequence.depth) if masks else None
+        if rendering is not None:
+            frame_masks = rendering.result()
+        else:
+            frame_masks = render() if masks else None
     if masks:
         timings["masks"] = time.perf_counter() - start  # beyond the labels' time, when rendered beside them
     say("mesh", 1, 1)
 
-    solid_voxels = int((solid if fused is not None else meshing.largest_component(occupied)).sum())  # (the fusion's solid is that component)
+    solid_voxels = int(solid.sum())
     carved = set(ids)
     report = {
         "sequence": annotation.sequence or sequence.name,

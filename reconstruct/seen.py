@@ -88,11 +88,16 @@ def _lookup(zone: np.ndarray, grid: VoxelGrid, points: np.ndarray) -> np.ndarray
 NEAR_CELL = OBSERVED_TOLERANCE * (1 + 1e-6)
 
 
+def _cell_index(points: np.ndarray, low: np.ndarray, cells: tuple[int, int, int]) -> np.ndarray:
+    """(N, 3) index, padded by one, of the cell (side NEAR_CELL from ``low``) holding each of ``points`` (at or above ``low``)."""
+    return np.minimum(((points - low) / NEAR_CELL).astype(np.int64), np.array(cells) - 1) + 1
+
+
 def _near_cells(measured: np.ndarray, low: np.ndarray, cells: tuple[int, int, int]) -> np.ndarray:
-    """(cells + 2) bool, padded by one cell on every side: the cells (side NEAR_CELL from ``low``, index + 1) holding a
-    ``measured`` point (at or above ``low``) or next to one."""
+    """(cells + 2) bool, padded by one cell on every side: the cells (:func:`_cell_index`) holding a ``measured``
+    point or next to one."""
     padded = np.array(cells) + 2
-    index = np.minimum(((measured - low) / NEAR_CELL).astype(np.int64), np.array(cells) - 1) + 1
+    index = _cell_index(measured, low, cells)
     occupied = np.unique(np.ravel_multi_index(index.T, padded))
     steps = np.ravel_multi_index(np.indices((3, 3, 3)).reshape(3, -1), padded) - np.ravel_multi_index((1, 1, 1), padded)
     near = np.zeros(int(np.prod(padded)), bool)
@@ -114,7 +119,7 @@ def observed_points(points: np.ndarray, faces: np.ndarray, frames, camera) -> np
     low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
     corners = box_corners(high - low) + (high + low) / 2
     cells = tuple(int(n) for n in np.floor((high - low) / NEAR_CELL) + 1)
-    cell_of = np.minimum(((points - low) / NEAR_CELL).astype(np.int64), np.array(cells) - 1) + 1  # padded
+    cell_of = _cell_index(points, low, cells)
     for pose, depth in frames:  # one ray cast and one tree per frame, over the points not yet observed
         todo = np.flatnonzero(~observed)
         if not len(todo):

@@ -158,7 +158,7 @@ def test_observed_points_agree_with_casting_every_point_in_every_frame():
 def test_the_cells_that_preselect_near_points_miss_no_pair_within_the_tolerance():
     from scipy.spatial import cKDTree
 
-    from reconstruct.seen import NEAR_CELL, OBSERVED_TOLERANCE, _near_cells
+    from reconstruct.seen import NEAR_CELL, OBSERVED_TOLERANCE, _cell_index, _near_cells
 
     rng = np.random.default_rng(1)
     missed = tested = 0
@@ -167,7 +167,7 @@ def test_the_cells_that_preselect_near_points_miss_no_pair_within_the_tolerance(
         low, high = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
         points = np.where(rng.random(points.shape) < 0.3, low + np.round((points - low) / OBSERVED_TOLERANCE) * OBSERVED_TOLERANCE, points)
         cells = tuple(int(n) for n in np.floor((high - low) / NEAR_CELL) + 1)
-        cell_of = np.minimum(((points - low) / NEAR_CELL).astype(np.int64), np.array(cells) - 1) + 1
+        cell_of = _cell_index(points, low, cells)
         steps = rng.choice([-1, 0, 1], (500, 3)) * OBSERVED_TOLERANCE * rng.choice([1, 0.999999, 1 - 1e-15], (500, 1))
         measured = np.concatenate([points[rng.integers(0, len(points), 500)] + steps, low[None], high[None], rng.uniform(low, high, (500, 3))])
         measured = measured[np.all((measured >= low) & (measured <= high), axis=1)]
