@@ -73,8 +73,7 @@ class Camera:
         points = np.asarray(points, dtype=np.float64)
         if not len(points) or points[:, 2].min() <= 1e-3:
             return slice(0, self.height), slice(0, self.width)
-        u = self.fx * points[:, 0] / points[:, 2] + self.cx
-        v = self.fy * points[:, 1] / points[:, 2] + self.cy
+        u, v = self.project(points)[0].T
         cols = slice(int(np.clip(np.floor(u.min()) - slack, 0, self.width)), int(np.clip(np.ceil(u.max()) + slack + 1, 0, self.width)))
         rows = slice(int(np.clip(np.floor(v.min()) - slack, 0, self.height)), int(np.clip(np.ceil(v.max()) + slack + 1, 0, self.height)))
         return rows, cols
