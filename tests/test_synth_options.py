@@ -5,6 +5,7 @@ only that; truths here are analytic or rendered independently."""
 from __future__ import annotations
 
 import json
+import itertools
 import subprocess
 import sys
 from dataclasses import replace
@@ -294,6 +295,24 @@ def test_table_coverage_rests_picks_up_and_puts_down():
     assert all(h.holding for h, r in zip(scene.hands, plan.resting) if not r)
     absent = np.array([not h.present for h in scene.hands])
     assert absent[first].sum() >= 10 and absent[second].sum() >= 5  # the hand leaves a resting object
+
+
+def test_table_coverage_lifts_and_sets_down_without_a_jump():
+    # A wide flat object (a closed laptop) turned over the table needs the most raise; a hand lifts it from rest.
+    box = np.array(list(itertools.product((-0.165, 0.165), (-0.01, 0.01), (-0.12, 0.12))))
+    for seed in range(6):
+        plan = capture_plan("table", 100, box, np.random.default_rng(seed))
+        R, P = plan.trajectory.rotations, plan.trajectory.positions
+        table_y, table_near = plan.table
+        turned = np.einsum("nij,vj->nvi", R, box)
+        over = turned[:, :, 2].max(axis=1) + P[:, 2] > table_near
+        assert np.all((turned[:, :, 1].max(axis=1) + P[:, 1])[over] <= table_y + 1e-9)
+        step = np.linalg.norm(np.diff(P, axis=0), axis=1)
+        turn = np.degrees(np.linalg.norm((Rotation.from_matrix(R[1:]) * Rotation.from_matrix(R[:-1]).inv()).as_rotvec(), axis=1))
+        edges = np.flatnonzero(np.diff(plan.resting.astype(int)))  # picked up, set down, picked up again
+        assert len(edges) == 3
+        assert step[edges].max() < 0.010 and turn[edges].max() < 1.5  # starts and ends from rest
+        assert step.max() < 0.045  # nowhere faster than a brisk lift (1.35 m/s at 30 fps)
 
 
 def test_frame_times_pair_by_nearest_time():

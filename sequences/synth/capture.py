@@ -5,8 +5,9 @@
 - ``key_orientations``: the object passes through a few key orientations only, dwelling at each with a
   hand's tremor and turning between them, as people show an object: the real orientations of a
   REDWOOD75 sequence, or a few drawn the same way. The bottom or the opening may never be seen.
-- ``table``: the object rests on a table (no hand), is picked up, shown, put down in another
-  orientation, left, picked up again and shown.
+- ``table``: the object rests on a table (no hand), is picked up (lifted before it turns), shown, set down in
+  another orientation (its turn coming to rest as it lands), left, picked up again and shown. Held over the
+  table, it never sinks into it: the held path is raised where needed before the lift blends into it.
 
 Frames: camera OpenCV (x right, y down, z forward), metres; rotations map object (ShapeNet axes) to camera.
 """
@@ -108,6 +109,20 @@ def key_orientation_trajectory(frames: int, keys: np.ndarray, rng: np.random.Gen
     return Trajectory(spline(frame_times).as_matrix(), drift_positions(np.linspace(0.0, 1.0, frames), len(keys), rng))
 
 
+def _eased_times(a: int, b: int, settles: bool) -> np.ndarray:
+    """Spline times (b - a + 1,) for held frames ``a..b`` of a path keyed from ``a - 1`` to ``b + 1``: the turn
+    starts from rest over LIFT_FRAMES (a hand lifts before it turns) and, if it ``settles`` on the table, comes to
+    rest over as many; constant pace between, a little faster to keep the keys' times."""
+    span = b - a + 2
+    u = (np.arange(a, b + 1) - (a - 1)) / span
+    ramp = min(LIFT_FRAMES / span, 0.45)
+    pace = 1.0 / (1.0 - ramp) if settles else 1.0 / (1.0 - ramp / 2)
+    eased = np.where(u < ramp, pace * u * u / (2 * ramp), pace * (u - ramp / 2))
+    if settles:
+        eased = np.where(u > 1 - ramp, 1.0 - pace * (1 - u) ** 2 / (2 * ramp), eased)
+    return (a - 1) + span * eased
+
+
 def _smoothstep(x: np.ndarray) -> np.ndarray:
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3 - 2 * x)
@@ -149,13 +164,17 @@ def table_trajectory(frames: int, vertices: np.ndarray, rng: np.random.Generator
         if end is not None:  # the last key sets it down in its next resting orientation
             turns[-1] = end
         spline = RotationSpline(times, Rotation.concatenate(turns))
-        R[a : b + 1] = spline(np.arange(a, b + 1, dtype=float)).as_matrix()
+        R[a : b + 1] = spline(_eased_times(a, b, settles=end is not None)).as_matrix()
+        # The held path clears the table at every orientation; the lift and the landing blend from the resting spot
+        # into it, so the object rises and comes down without a jump.
         drift = drift_positions(np.linspace(0.0, 1.0, n), keys, rng)
+        held = _above_table(drift, R[a : b + 1], vertices, table_y, table_near, resting=np.zeros(n, bool))
         lift = _smoothstep((np.arange(n) + 1) / LIFT_FRAMES)[:, None]
-        P[a : b + 1] = (1 - lift) * spot + lift * drift
+        P[a : b + 1] = (1 - lift) * spot + lift * held
         if end is not None:
             land = _smoothstep((b + 1 - np.arange(a, b + 1)) / LIFT_FRAMES)[:, None]
             P[a : b + 1] = land * P[a : b + 1] + (1 - land) * spots[1]
+    # What the blend of a turning object still sinks (a few millimetres near the spot) is raised too.
     P = _above_table(P, R, vertices, table_y, table_near, resting=_resting(frames, [first, second]))
     return CapturePlan(Trajectory(R, P), [first, second], _resting(frames, [first, second]), (table_y, table_near))
 
