@@ -12,9 +12,8 @@ trajectory and hand (object frame = ShapeNet axes, camera frame = OpenCV, metres
 - the share of the whole surface that no frame shows unobstructed (first hit, facing within
   SEEN_INCIDENCE);
 - per grasp, the hand's space next to the surface (hand mesh vertices 2 MARGIN to CONTACT off the
-  surface): the share of it the depth sees free (a surface of the scene, lit by the projector, beyond
-  it along the ray) in at least MIN_FREE_FRAMES frames where that grasp does not hold the object (what
-  a carving needs to remove the hand, whose surface it measured in every frame of the hold).
+  surface): the share of it seen free (in front of the first surface along the ray) in at least
+  one frame where that grasp does not hold the object (what a carving needs to remove the hand).
 """
 
 from __future__ import annotations
@@ -25,10 +24,8 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from .motion import MIN_FREE_FRAMES, HandState, Trajectory
-from .primitives import concatenate
-from .scene import Layout, background_parts, elbow_at, hand_parts, person_parts, upper_arm_part
-from .sensor import PROJECTOR
+from .motion import HandState, Trajectory
+from .scene import Layout, elbow_at, hand_parts, upper_arm_part
 
 #: Surface points this close to the hand (metres) count as covered by it.
 CONTACT = 0.012
@@ -45,7 +42,7 @@ class Coverage:
     opening_deg: float  # smallest angle between object +y and the direction toward the camera
     bottom_deg: float  # smallest angle between object +y and the direction away from the camera
     contact_seen: list[float]  # per grasp: share of its contact patch seen unobstructed during another grasp
-    hand_space_free: list[float]  # per grasp: share of the hand's space near the surface seen free (MIN_FREE_FRAMES) when it is elsewhere
+    hand_space_free: list[float]  # per grasp: share of the hand's space near the surface seen free when it is elsewhere
     unseen: float = 0.0  # share of the whole surface no frame shows unobstructed (a deep cavity's floor, under a hand)
 
 
@@ -56,29 +53,11 @@ def _surface_samples(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarr
 
 def _first_hits(parts_vertices: np.ndarray, parts_faces: np.ndarray, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance along the ray from the camera centre toward each point to the first triangle hit, and the ray lengths."""
-    return _hits(_scene(parts_vertices, parts_faces), points_cam)
-
-
-def _scene(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    return scene
-
-
-def _hits(scene: o3d.t.geometry.RaycastingScene, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    scene.add_triangles(o3d.core.Tensor(parts_vertices.astype(np.float32)), o3d.core.Tensor(parts_faces.astype(np.uint32)))
     length = np.linalg.norm(points_cam, axis=1)
     rays = np.concatenate([np.zeros_like(points_cam), points_cam / length[:, None]], axis=1).astype(np.float32)
     return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64), length
-
-
-def _measured_behind(scene: o3d.t.geometry.RaycastingScene, points_cam: np.ndarray) -> np.ndarray:
-    """Whether the depth sees each point (camera frame) free: the first surface along its ray lies beyond it and the
-    projector lights that surface (no shadow)."""
-    t, length = _hits(scene, points_cam)
-    free = np.isfinite(t) & (t > length + MARGIN)
-    start = points_cam / length[:, None] * (np.where(free, t, length) - 1e-3)[:, None]
-    rays = np.concatenate([start, PROJECTOR - start], axis=1).astype(np.float32)
-    return free & ~scene.test_occlusions(o3d.core.Tensor(rays), tnear=1e-4, tfar=1.0).numpy()
 
 
 def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState], layout: Layout, samples: int = 4000, seed: int = 0) -> Coverage:
@@ -117,9 +96,8 @@ def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState
         patches[g] = np.flatnonzero((np.linalg.norm(to_hand, axis=1) < CONTACT) & (np.einsum("ij,ij->i", to_hand, normals) > 0))
         spaces[g] = vertices[near_hand]
 
-    still_vertices, still_faces, _, _ = concatenate([*background_parts(layout), *person_parts(layout)])
     seen = {g: np.zeros(len(patches[g]), bool) for g in grasps}
-    free = {g: np.zeros(len(spaces[g]), int) for g in grasps}  # frames seeing each point free
+    free = {g: np.zeros(len(spaces[g]), bool) for g in grasps}
     object_faces = np.asarray(mesh.faces)
     ever = np.zeros(len(surface), bool)
     for i in range(frames):
@@ -128,7 +106,6 @@ def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState
         hand_cam = hand_obj[i] @ T[:3, :3].T + T[:3, 3]
         vertices = np.concatenate([np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], hand_cam, arm.vertices])
         faces = np.concatenate([object_faces, faces_hand + len(mesh.vertices), arm.faces + len(mesh.vertices) + len(hand_cam)])
-        whole = _scene(np.concatenate([vertices, still_vertices]), np.concatenate([faces, still_faces + len(vertices)]))
         points = surface @ T[:3, :3].T + T[:3, 3]
         t, length = _first_hits(vertices, faces, points)
         facing = -np.einsum("ij,ij->i", normals @ T[:3, :3].T, points / length[:, None])
@@ -140,8 +117,8 @@ def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState
                 facing = -np.einsum("ij,ij->i", normals[patches[g]] @ T[:3, :3].T, points / length[:, None])
                 seen[g] |= (np.abs(t - length) < MARGIN) & (facing > np.cos(np.radians(SEEN_INCIDENCE)))
             if grasp_of[i] != g and len(spaces[g]):  # the hand is elsewhere (or moving): is its old space seen free?
-                free[g] += _measured_behind(whole, spaces[g] @ T[:3, :3].T + T[:3, 3])
+                points = spaces[g] @ T[:3, :3].T + T[:3, 3]
+                t, length = _first_hits(vertices, faces, points)
+                free[g] |= t > length + MARGIN
     share = lambda flags: float(flags.mean()) if len(flags) else 1.0  # noqa: E731
-    elsewhere = {g: int((grasp_of != g).sum()) for g in grasps}
-    shown_free = {g: free[g] >= min(MIN_FREE_FRAMES, elsewhere[g]) for g in grasps}
-    return Coverage(opening, bottom, [share(seen[g]) for g in grasps], [share(shown_free[g]) for g in grasps], float(1.0 - ever.mean()))
+    return Coverage(opening, bottom, [share(seen[g]) for g in grasps], [share(free[g]) for g in grasps], float(1.0 - ever.mean()))

@@ -28,7 +28,7 @@ from .capture import capture_plan
 from .motion import Grasp, GraspPlanner, HandState, Trajectory, plan_grasps, hand_states
 from .options import GENERATOR_VERSION, CaptureOptions, check_arguments, check_capture
 from .png16 import write_png16
-from .primitives import Part, concatenate, vertex_normals
+from .primitives import Part, vertex_normals
 from .render import Render, crop, projected_window, render
 from .scene import OBJECT, Layout, background_parts, elbow_at, hand_parts, make_layout, person_parts, upper_arm_part
 from .sensor import PROJECTOR, ObjectStyle, add_color_noise, depth_measurement, object_style, scene_albedo, shade
@@ -113,11 +113,10 @@ def build_scene(obj: trimesh.Trimesh, frames: int, seed: int, camera: Camera, ca
     plan = capture_plan(capture.coverage, frames, np.asarray(obj.convex_hull.vertices), _rng(seed, MOTION), capture.keys, capture.turn_speed)
     trajectory = plan.trajectory
     layout = make_layout(trajectory.positions.mean(axis=0), _rng(seed, LAYOUT), plan.table)
-    still_parts = [*background_parts(layout), *person_parts(layout)]
-    planner = GraspPlanner(obj, _rng(seed, GRASPS), concatenate(still_parts)[:2], PROJECTOR)
-    grasps = plan_grasps(plan.schedule, trajectory, planner, layout.elbow, plan.resting)
+    grasps = plan_grasps(plan.schedule, trajectory, GraspPlanner(obj, _rng(seed, GRASPS)), layout.elbow, plan.resting)
     style = object_style(_rng(seed, STYLE), float(obj.extents[1]), capture.texture)
     vertices, faces = np.asarray(obj.vertices), np.asarray(obj.faces)
+    still_parts = [*background_parts(layout), *person_parts(layout)]
     still = render(still_parts, camera, projector=PROJECTOR)
     still_colour = shade(still, scene_albedo(still, np.eye(4), style, layout), layout.light)
     sensor = capture.sensor

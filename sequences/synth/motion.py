@@ -12,10 +12,9 @@ regrasps). Its centre drifts smoothly 0.5-0.85 m in front of the camera.
 
 A hand holds the object by a grasp fixed in the object frame (palm on the surface, fingers wrapped
 on it), releases it, moves around it and grasps elsewhere (at least one regrasp per sequence).
-Each grasp is placed, of a few candidates, where the space its hand fills next to the surface is seen
-free in the most frames held by another grasp (or resting), as the depth sensor sees it: a lit surface
-of the scene behind it, in several frames, since the hand's own surface is measured in every frame of
-its hold. The hand then rarely hides for good what only its hold could show (:mod:`.coverage` measures it).
+Each grasp is placed so that the space its hand fills next to the surface is seen free (in front
+of the object) in frames held by another grasp: the hand never hides for good what only its hold
+could show (:mod:`.coverage` measures it).
 Frames: camera OpenCV (x right, y down, z forward), metres; poses map object to camera.
 """
 
@@ -49,9 +48,6 @@ FOREARM_RADIUS = 0.030
 #: Wrist in the hand frame (behind the palm, opposite the fingers).
 WRIST = np.array([0.0, -0.060, 0.006])
 RETRACT = 0.05  # how far the open hand backs off the surface between grasps, metres
-#: The hand's space counts as shown free when at least this many frames (of the hand elsewhere) see it so: the hand's
-#: surface is measured in every frame of its hold, and one glimpse of free space does not outweigh that.
-MIN_FREE_FRAMES = 8
 
 
 @dataclass
@@ -216,37 +212,14 @@ def open_hand() -> np.ndarray:
     return np.concatenate([fingers, thumb[None]], axis=0)
 
 
-def _raycasting(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.RaycastingScene:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    return scene
-
-
-def _cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Distance (..., ) along unit ``directions`` (..., 3) from ``origins`` (..., 3) to the first hit (inf: none)."""
-    rays = np.concatenate([origins, directions], axis=-1).reshape(-1, 6).astype(np.float32)
-    return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(directions.shape[:-1])
-
-
-def _segment_blocked(scene: o3d.t.geometry.RaycastingScene, starts: np.ndarray, towards: np.ndarray) -> np.ndarray:
-    """Whether the segment from each start (..., 3) to start + towards (..., 3) meets the scene."""
-    rays = np.concatenate([starts, towards], axis=-1).reshape(-1, 6).astype(np.float32)
-    return scene.test_occlusions(o3d.core.Tensor(rays), tnear=1e-4, tfar=1.0).numpy().reshape(towards.shape[:-1])
-
-
 class GraspPlanner:
     """Chooses grasp points on the object's surface and wraps the fingers on it (closest-point queries)."""
 
-    def __init__(self, mesh: trimesh.Trimesh, rng: np.random.Generator, surroundings: tuple[np.ndarray, np.ndarray] | None = None,
-                 projector: np.ndarray | None = None) -> None:
-        """``surroundings``: the still scene's (vertices (V, 3) in the camera frame, faces (F, 3)) and the depth
-        sensor's ``projector`` (camera frame, m): with them, space counts as seen free only where the depth would
-        measure a surface behind it (:meth:`seen_free`)."""
+    def __init__(self, mesh: trimesh.Trimesh, rng: np.random.Generator) -> None:
         self.mesh = mesh
         self.rng = rng
-        self.scene = _raycasting(np.asarray(mesh.vertices), np.asarray(mesh.faces))
-        self.surroundings = None if surroundings is None else _raycasting(*surroundings)
-        self.projector = None if projector is None else np.asarray(projector, np.float64)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
         # area-weighted surface samples with their face normals (seeded, so grasps are deterministic)
         area = np.asarray(mesh.area_faces, dtype=np.float64)
         face = rng.choice(len(area), size=600, p=area / area.sum())
@@ -346,29 +319,14 @@ class GraspPlanner:
         return (facing & (t > length)).any(axis=0)
 
     def seen_free(self, points: np.ndarray, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        """(P,) bool: whether MIN_FREE_FRAMES frames (all, if fewer; object rotations (M, 3, 3), positions (M, 3)) see
-        each point (object frame) free: the ray from the camera through it meets the object only beyond it (or
-        never). With the surroundings, as the depth sees it: the ray meets a surface beyond the point (the object,
-        the table, the wall) and the projector lights that surface (a shadow measures nothing)."""
+        """(P,) bool: whether some frame (object rotations (M, 3, 3), positions (M, 3)) sees each point (object frame)
+        in front of the object: the ray from the camera through it meets the object only beyond it (or never)."""
         centres = -np.einsum("mji,mj->mi", rotations, positions)  # camera centres in the object frame (M, 3)
         ray = points[None] - centres[:, None]  # (M, P, 3)
         length = np.linalg.norm(ray, axis=2)
-        unit = ray / length[..., None]
-        t = _cast(self.scene, np.broadcast_to(centres[:, None], ray.shape), unit)
-        if self.surroundings is None:
-            free = t > length + 0.002
-        else:
-            unit_cam = np.einsum("mij,mpj->mpi", rotations, unit)  # the same rays in the camera frame, from its origin
-            t = np.minimum(t, _cast(self.surroundings, np.zeros_like(unit_cam), unit_cam))
-            free = np.isfinite(t) & (t > length + 0.002)
-            if self.projector is not None:
-                # from just before the surface hit toward the projector: blocked by the object or the surroundings
-                start = unit_cam * (np.where(free, t, length) - 1e-3)[..., None]
-                towards = self.projector - start
-                start_obj = np.einsum("mji,mpj->mpi", rotations, start - positions[:, None])
-                towards_obj = np.einsum("mji,mpj->mpi", rotations, towards)
-                free &= ~_segment_blocked(self.surroundings, start, towards) & ~_segment_blocked(self.scene, start_obj, towards_obj)
-        return free.sum(axis=0) >= min(MIN_FREE_FRAMES, len(rotations))
+        rays = np.concatenate([np.broadcast_to(centres[:, None], ray.shape), ray / length[..., None]], axis=2).reshape(-1, 6)
+        t = self.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
+        return (t > length + 0.002).any(axis=0)
 
     def _grasp(self, contact: np.ndarray, normal: np.ndarray, fingers: np.ndarray, first: int, last: int) -> Grasp:
         """The grasp with its palm on ``contact`` (outward ``normal``), fingers along ``fingers``, wrapped on the surface."""
