@@ -175,8 +175,9 @@ def table_trajectory(frames: int, vertices: np.ndarray, rng: np.random.Generator
             land = _smoothstep((b + 1 - np.arange(a, b + 1)) / LIFT_FRAMES)[:, None]
             P[a : b + 1] = land * P[a : b + 1] + (1 - land) * spots[1]
     # What the blend of a turning object still sinks (a few millimetres near the spot) is raised too.
-    P = _above_table(P, R, vertices, table_y, table_near, resting=_resting(frames, [first, second]))
-    return CapturePlan(Trajectory(R, P), [first, second], _resting(frames, [first, second]), (table_y, table_near))
+    resting = _resting(frames, [first, second])
+    P = _above_table(P, R, vertices, table_y, table_near, resting=resting)
+    return CapturePlan(Trajectory(R, P), [first, second], resting, (table_y, table_near))
 
 
 def _resting(frames: int, schedule: list[tuple[int, int]]) -> np.ndarray:
