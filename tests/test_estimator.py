@@ -18,11 +18,13 @@ import gtsam
 
 from annotate.estimator.graph import Factor, _steady, sigmas, solve, without_spin
 from annotate.estimator.model import fuse
-from annotate.estimator.observations import Crop
+from annotate.estimator.observations import Crop, FrameCrops
+from annotate.estimator.scene import PLANE_DISTANCE
 from annotate.estimator.pipeline import _closure, initial_poses
 from annotate.estimator.registration import Model, offset, register, retract
 from sequences.annotation import Annotation, FramePose, load_annotation, save_annotation
 from sequences.reader import open_sequence
+from sequences.sensor_noise import depth_sigma
 
 
 def _walk(n: int, seed: int = 0) -> np.ndarray:
@@ -226,6 +228,84 @@ def test_fuse_keeps_the_two_sides_of_a_thin_wall_apart():
     up, down = np.tile([0, 0, 1.0], (20, 1)), np.tile([0, 0, -1.0], (20, 1))
     model = fuse([(outer, up), (inner, down)], 0.004)
     assert np.any(model.normals[:, 2] > 0.99) and np.any(model.normals[:, 2] < -0.99)
+
+
+class _Scene:
+    """A depth camera (VGA, 525 px focal length) whose frames' images are given."""
+
+    camera = type("Camera", (), {"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5})()
+
+    def __init__(self, *depths: np.ndarray) -> None:
+        self._depths = {str(k): d for k, d in enumerate(depths)}
+        self.ids = list(self._depths)
+
+    def depth(self, frame_id: str) -> np.ndarray:
+        return self._depths[frame_id]
+
+
+def test_scene_planes_finds_a_table_and_a_noisy_far_wall_once_each():
+    rng = np.random.default_rng(3)
+    v, u = np.mgrid[:480, :640]
+    down = (v - 239.5) / 525.0  # the ray's y per unit depth: the table lies 0.13 m below the camera
+    with np.errstate(divide="ignore"):
+        table = np.where(down > 0, 0.13 / down, np.inf)
+    depth = np.where(table < 2.05, table + rng.normal(0, 0.002, table.shape), 2.05 + rng.normal(0, 0.006, table.shape))
+    depth[100:200, 250:350] = rng.uniform(0.5, 1.0, (100, 100))  # clutter: no plane
+    depth[rng.random(depth.shape) < 0.3] = 0  # the sensor's holes
+    planes = FrameCrops(_Scene(depth.astype(np.float32)), 2, 0.004).planes("0")
+    assert len(planes) == 2
+    (n_wall, d_wall, _), (n_table, d_table, _) = sorted(planes, key=lambda p: -abs(p[0][2]))
+    assert abs(abs(n_wall[2]) - 1) < 1e-3 and abs(abs(d_wall) - 2.05) < 0.002
+    assert abs(abs(n_table[1]) - 1) < 2e-3 and abs(abs(d_table) - 0.13) < 0.001
+
+
+def _slab_on_a_table(shift_px: int, table: float = 1.0) -> np.ndarray:
+    """A camera looking straight down at a table ``table`` m away, a 50 mm slab lying on it (its top face 5 cm
+    nearer, 0.434 x 0.362 m: large enough to be found as a plane like the scene's), ``shift_px`` pixels right of the
+    image's middle."""
+    depth = np.full((480, 640), table, dtype=np.float32)
+    depth[140:340, 200 + shift_px : 440 + shift_px] = table - 0.05
+    return depth
+
+
+#: the slab's pose (object to camera) and its box grown by 2.5 cm: the table shows around the slab inside it
+SLAB_POSE = np.array([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.975], [0, 0, 0, 1]])
+SLAB_HALF = np.array([0.217, 0.181, 0.025]) + 0.025
+
+
+def test_a_moving_objects_crop_leaves_out_the_table_and_keeps_its_own_parallel_face():
+    crops = FrameCrops(_Scene(_slab_on_a_table(0), _slab_on_a_table(16)), 2, 0.004)
+    assert len(crops.planes("0")) == 2  # the table and the slab's face
+    assert crops.moving("0", SLAB_POSE, SLAB_HALF)
+    points = crops.points_in_box("0", SLAB_POSE, SLAB_HALF)
+    assert np.all(points[:, 2] < 0.95 + PLANE_DISTANCE)  # no table point
+    face = np.sum(np.abs(points[:, 2] - 0.95) < 1e-6)
+    assert face == len(points) == 100 * 120  # every subsampled pixel of the slab's face, which ends within the box
+
+
+def test_a_crop_keeps_the_table_where_the_camera_moves_against_it():
+    # the slab moves in the image, but so does the table (4 mm nearer): the camera moved, and the slab may rest on it
+    crops = FrameCrops(_Scene(_slab_on_a_table(0), _slab_on_a_table(16, table=0.996)), 2, 0.004)
+    assert crops.moving("0", SLAB_POSE, SLAB_HALF)
+    table = [(n, d) for n, d, _ in crops.planes("0") if abs(abs(d) - 1.0) < 0.002]
+    assert len(table) == 1 and not crops.still("0", *table[0])
+    points = crops.points_in_box("0", SLAB_POSE, SLAB_HALF)
+    assert np.sum(np.abs(points[:, 2] - 1.0) < 1e-6) > 1500
+
+
+def test_a_resting_objects_crop_keeps_the_table_it_rests_on():
+    rng = np.random.default_rng(5)
+    frames = []
+    for _ in range(2):  # the same scene, each reading with the sensor's noise and holes of its own
+        depth = _slab_on_a_table(0)
+        depth = depth + rng.normal(0, 1, depth.shape).astype(np.float32) * depth_sigma(depth)
+        depth[rng.random(depth.shape) < 0.1] = 0
+        frames.append(depth.astype(np.float32))
+    assert not FrameCrops(_Scene(*frames), 2, 0.004).moving("0", SLAB_POSE, SLAB_HALF)
+    crops = FrameCrops(_Scene(_slab_on_a_table(0), _slab_on_a_table(0)), 2, 0.004)
+    assert not crops.moving("0", SLAB_POSE, SLAB_HALF)
+    points = crops.points_in_box("0", SLAB_POSE, SLAB_HALF)
+    assert np.sum(np.abs(points[:, 2] - 1.0) < 1e-6) > 1500  # the table around the slab, within its box
 
 
 def test_anchors_are_the_boxes_a_person_placed_refined_or_accepted():

@@ -1,24 +1,28 @@
 """A frame's measured points near a box: camera frame, metres, with normals that face the camera.
 
 Each depth image is read once and kept subsampled (``stride``); a crop back-projects only the pixels inside the
-image rectangle of the box's corners, keeps the points inside the grown box, thins them on a voxel grid and
-estimates normals with Open3D (a k-nearest-neighbour plane fit, oriented towards the camera at the origin).
+image rectangle of the box's corners, keeps the points inside the grown box, leaves out the scene's planes where the
+object moves (scene.py), thins them on a voxel grid and estimates normals with Open3D (a k-nearest-neighbour plane
+fit, oriented towards the camera at the origin).
 """
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
 
 from sequences.reader import Sequence
+from sequences.sensor_noise import depth_sigma
+
+from .scene import (BEYOND, BEYOND_SHARE, DROP_SIGMAS, MAX_CROP_SHARE, PLANE_PIXEL_STEP, STILL_SHARE, STILL_SHIFT, STILL_TURN,
+                    changed_share, scene_planes)
 
 #: neighbours of a point's plane fit: 16 at a 4 mm spacing spans about 1.5 cm, wide enough to average the sensor's
 #: quantisation steps, narrow enough to keep a mug's rim and a box's edges
 NORMAL_NEIGHBOURS = 16
-
-
 @dataclass
 class Crop:
     """Points (N, 3) and unit normals (N, 3) in the camera frame (m), normals facing the camera."""
@@ -42,6 +46,8 @@ class FrameCrops:
     def __init__(self, sequence: Sequence, stride: int, voxel: float) -> None:
         self.sequence, self.stride, self.voxel = sequence, int(stride), float(voxel)
         self._depth: dict[str, np.ndarray] = {}
+        self._planes: dict[str, list] = {}
+        self._order = {f: k for k, f in enumerate(sequence.ids)}
         camera = sequence.camera
         self.fx, self.fy, self.cx, self.cy = camera.fx, camera.fy, camera.cx, camera.cy
 
@@ -50,6 +56,43 @@ class FrameCrops:
         if frame_id not in self._depth:
             self._depth[frame_id] = np.ascontiguousarray(self.sequence.depth(frame_id)[:: self.stride, :: self.stride])
         return self._depth[frame_id]
+
+    def planes(self, frame_id: str) -> list[tuple[np.ndarray, float, np.ndarray]]:
+        """The frame's scene planes (:func:`scene_planes`), camera frame; found once."""
+        if frame_id not in self._planes:
+            z = self.depth(frame_id)[::PLANE_PIXEL_STEP, ::PLANE_PIXEL_STEP].astype(np.float64)
+            step = PLANE_PIXEL_STEP * self.stride
+            v, u = np.mgrid[: z.shape[0], : z.shape[1]] * step
+            grid = np.stack([(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z], axis=-1)
+            self._planes[frame_id] = scene_planes(grid, np.random.default_rng(zlib.crc32(frame_id.encode())))
+        return self._planes[frame_id]
+
+    def keep_planes(self, planes: dict[str, list]) -> None:
+        """Scene planes of these frames (:meth:`planes`), found elsewhere (by worker processes)."""
+        self._planes.update(planes)
+
+    def moving(self, frame_id: str, pose: np.ndarray, half: np.ndarray) -> bool:
+        """Whether the depth around the box (at ``pose``) changed from the frame before or to the frame after."""
+        corners = box_corners(pose, half)
+        if np.any(corners[:, 2] <= 1e-3):
+            return True  # the camera is inside or behind the box: nothing says the object rests
+        rows, cols, z = self.project(corners)
+        h, w = self.depth(frame_id).shape
+        window = np.s_[max(rows.min(), 0) : min(rows.max() + 1, h), max(cols.min(), 0) : min(cols.max() + 1, w)]
+        ids, k = self.sequence.ids, self._order[frame_id]
+        neighbours = [ids[j] for j in (k - 1, k + 1) if 0 <= j < len(ids)]
+        return any(changed_share(self.depth(frame_id)[window], self.depth(other)[window], z.min(), z.max()) >= STILL_SHARE
+                   for other in neighbours)
+
+    def still(self, frame_id: str, normal: np.ndarray, d: float) -> bool:
+        """Whether the frame before and the frame after hold the same plane (unit ``normal``, offset ``d``; camera
+        frame) within STILL_TURN and STILL_SHIFT: the camera did not move against it."""
+        ids, k = self.sequence.ids, self._order[frame_id]
+        for j in (k - 1, k + 1):
+            if 0 <= j < len(ids) and not any(np.degrees(np.arccos(np.clip(abs(normal @ n), -1.0, 1.0))) <= STILL_TURN
+                                               and abs(d - np.sign(normal @ n) * e) <= STILL_SHIFT for n, e, _ in self.planes(ids[j])):
+                return False
+        return True
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Subsampled pixel rows, columns (int) and depths (m) of camera-frame points (N, 3)."""
@@ -76,7 +119,24 @@ class FrameCrops:
         u_full, v_full = (u + c0) * self.stride, (v + r0) * self.stride
         points = np.stack([(u_full - self.cx) / self.fx * z, (v_full - self.cy) / self.fy * z, z], axis=1)
         local = (points - pose[:3, 3]) @ pose[:3, :3]
-        return points[np.all(np.abs(local) <= half, axis=1)]
+        points = points[np.all(np.abs(local) <= half, axis=1)]
+        # a plane that goes on beyond the box (a table the object stands on, a wall) is the scene's: its points in
+        # the box move with the scene, not the object, and hold a lifted object's pose to where it stood
+        # a scene's plane that stands still (the camera does not move) while the object moves: a table it was lifted
+        # from; where the camera moves, the plane moves too, and may hold an object standing on it still
+        scene = [(normal, d) for normal, d, inliers in self.planes(frame_id)
+                 if np.mean(np.any(np.abs((inliers - pose[:3, 3]) @ pose[:3, :3]) > half + BEYOND, axis=1)) >= BEYOND_SHARE
+                 and self.still(frame_id, normal, d)]
+        if not scene:
+            return points
+        reach = DROP_SIGMAS * depth_sigma(points[:, 2])
+        if not any(np.any(np.abs(points @ normal + d) < reach) for normal, d in scene) or not self.moving(frame_id, pose, half):
+            return points  # none in the box; or the object rests, and what it rests on moves with it, and holds it
+        for normal, d in scene:
+            on = np.abs(points @ normal + d) < reach
+            if on.mean() < MAX_CROP_SHARE:
+                points, reach = points[~on], reach[~on]
+        return points
 
     def crop(self, frame_id: str, pose: np.ndarray, half: np.ndarray, max_points: int = 0, seed: int = 0) -> Crop:
         """The frame's points in the box, thinned to the voxel grid, with normals facing the camera; at most

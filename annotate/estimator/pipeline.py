@@ -77,6 +77,8 @@ class _Setup:
         if self.workers > 1:
             for frame_id in ids:
                 self.crops.depth(frame_id)
+            # and their scene planes: each map's workers would otherwise find them again
+            self.crops.keep_planes(dict(zip(ids, ordered_map(self.crops.planes, ids, self.workers))))
         #: a registration's pull towards the pose it starts from: the motion sigma (the start is a prediction)
         self.motion_prior = np.diag(1.0 / sigmas(config.motion_sigma_deg, config.motion_sigma_m) ** 2)
 
