@@ -23,6 +23,8 @@ from .scene import (BEYOND, BEYOND_SHARE, DROP_SIGMAS, MAX_CROP_SHARE, PLANE_PIX
 #: neighbours of a point's plane fit: 16 at a 4 mm spacing spans about 1.5 cm, wide enough to average the sensor's
 #: quantisation steps, narrow enough to keep a mug's rim and a box's edges
 NORMAL_NEIGHBOURS = 16
+
+
 @dataclass
 class Crop:
     """Points (N, 3) and unit normals (N, 3) in the camera frame (m), normals facing the camera."""
@@ -120,10 +122,9 @@ class FrameCrops:
         points = np.stack([(u_full - self.cx) / self.fx * z, (v_full - self.cy) / self.fy * z, z], axis=1)
         local = (points - pose[:3, 3]) @ pose[:3, :3]
         points = points[np.all(np.abs(local) <= half, axis=1)]
-        # a plane that goes on beyond the box (a table the object stands on, a wall) is the scene's: its points in
-        # the box move with the scene, not the object, and hold a lifted object's pose to where it stood
-        # a scene's plane that stands still (the camera does not move) while the object moves: a table it was lifted
-        # from; where the camera moves, the plane moves too, and may hold an object standing on it still
+        # a plane that goes on beyond the box (a table, a wall) and stands still is the scene's: where the object moves,
+        # its points in the box would hold the object's pose to where it stood; where the camera moves, the plane
+        # moves too (and may hold an object standing on it)
         scene = [(normal, d) for normal, d, inliers in self.planes(frame_id)
                  if np.mean(np.any(np.abs((inliers - pose[:3, 3]) @ pose[:3, :3]) > half + BEYOND, axis=1)) >= BEYOND_SHARE
                  and self.still(frame_id, normal, d)]
