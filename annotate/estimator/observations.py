@@ -17,12 +17,18 @@ import open3d as o3d
 from sequences.reader import Sequence
 from sequences.sensor_noise import depth_sigma
 
-from .scene import (BEYOND, BEYOND_SHARE, DROP_SIGMAS, MAX_CROP_SHARE, PLANE_PIXEL_STEP, STILL_SHARE, STILL_SHIFT, STILL_TURN,
-                    changed_share, scene_planes)
+from .scene import (BEYOND, BEYOND_SHARE, DROP_SIGMAS, MAX_CROP_SHARE, PLANE_PIXEL_STEP, STILL_SHARE, STILL_SHIFT,
+                    STILL_TURN, changed_share, scene_planes)
 
 #: neighbours of a point's plane fit: 16 at a 4 mm spacing spans about 1.5 cm, wide enough to average the sensor's
 #: quantisation steps, narrow enough to keep a mug's rim and a box's edges
 NORMAL_NEIGHBOURS = 16
+
+
+def _same_plane(normal: np.ndarray, d: float, other: np.ndarray, e: float) -> bool:
+    """Whether planes (unit normal, offset; either orientation) lie within STILL_TURN and STILL_SHIFT of each other."""
+    cos = normal @ other
+    return bool(np.degrees(np.arccos(min(abs(cos), 1.0))) <= STILL_TURN and abs(d - np.sign(cos) * e) <= STILL_SHIFT)
 
 
 @dataclass
@@ -63,9 +69,8 @@ class FrameCrops:
         """The frame's scene planes (:func:`scene_planes`), camera frame; found once."""
         if frame_id not in self._planes:
             z = self.depth(frame_id)[::PLANE_PIXEL_STEP, ::PLANE_PIXEL_STEP].astype(np.float64)
-            step = PLANE_PIXEL_STEP * self.stride
-            v, u = np.mgrid[: z.shape[0], : z.shape[1]] * step
-            grid = np.stack([(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z], axis=-1)
+            v, u = np.mgrid[: z.shape[0], : z.shape[1]] * (PLANE_PIXEL_STEP * self.stride)
+            grid = self._backproject(u, v, z)
             self._planes[frame_id] = scene_planes(grid, np.random.default_rng(zlib.crc32(frame_id.encode())))
         return self._planes[frame_id]
 
@@ -75,26 +80,40 @@ class FrameCrops:
 
     def moving(self, frame_id: str, pose: np.ndarray, half: np.ndarray) -> bool:
         """Whether the depth around the box (at ``pose``) changed from the frame before or to the frame after."""
+        window = self._window(frame_id, pose, half)
+        return window is None or self._changed(frame_id, window)  # inside or behind the box: nothing says it rests
+
+    def _window(self, frame_id: str, pose: np.ndarray, half: np.ndarray) -> tuple[slice, slice, float, float] | None:
+        """The rectangle (rows, columns) of the frame's subsampled depth that the box projects into, and the box's depth
+        range (m); None where the camera is inside or behind the box."""
         corners = box_corners(pose, half)
         if np.any(corners[:, 2] <= 1e-3):
-            return True  # the camera is inside or behind the box: nothing says the object rests
+            return None
         rows, cols, z = self.project(corners)
         h, w = self.depth(frame_id).shape
-        window = np.s_[max(rows.min(), 0) : min(rows.max() + 1, h), max(cols.min(), 0) : min(cols.max() + 1, w)]
+        rows = slice(max(rows.min(), 0), min(rows.max() + 1, h))
+        return rows, slice(max(cols.min(), 0), min(cols.max() + 1, w)), z.min(), z.max()
+
+    def _changed(self, frame_id: str, window: tuple[slice, slice, float, float]) -> bool:
+        """Whether the depth in ``window`` (:meth:`_window`) changed from the frame before or to the frame after."""
+        rows, cols, z_near, z_far = window
         ids, k = self.sequence.ids, self._order[frame_id]
-        neighbours = [ids[j] for j in (k - 1, k + 1) if 0 <= j < len(ids)]
-        return any(changed_share(self.depth(frame_id)[window], self.depth(other)[window], z.min(), z.max()) >= STILL_SHARE
-                   for other in neighbours)
+        here = self.depth(frame_id)[rows, cols]
+        return any(changed_share(here, self.depth(ids[j])[rows, cols], z_near, z_far) >= STILL_SHARE
+                   for j in (k - 1, k + 1) if 0 <= j < len(ids))
 
     def still(self, frame_id: str, normal: np.ndarray, d: float) -> bool:
         """Whether the frame before and the frame after hold the same plane (unit ``normal``, offset ``d``; camera
         frame) within STILL_TURN and STILL_SHIFT: the camera did not move against it."""
         ids, k = self.sequence.ids, self._order[frame_id]
         for j in (k - 1, k + 1):
-            if 0 <= j < len(ids) and not any(np.degrees(np.arccos(np.clip(abs(normal @ n), -1.0, 1.0))) <= STILL_TURN
-                                               and abs(d - np.sign(normal @ n) * e) <= STILL_SHIFT for n, e, _ in self.planes(ids[j])):
+            if 0 <= j < len(ids) and not any(_same_plane(normal, d, n, e) for n, e, _ in self.planes(ids[j])):
                 return False
         return True
+
+    def _backproject(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Camera-frame points (..., 3) of full-resolution pixel columns ``u``, rows ``v`` and depths ``z`` (m)."""
+        return np.stack([(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z], axis=-1)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Subsampled pixel rows, columns (int) and depths (m) of camera-frame points (N, 3)."""
@@ -107,32 +126,28 @@ class FrameCrops:
     def points_in_box(self, frame_id: str, pose: np.ndarray, half: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3) of the frame inside the box (half sides ``half``, m) at ``pose``."""
         depth = self.depth(frame_id)
-        h, w = depth.shape
-        corners = box_corners(pose, half)
-        if np.all(corners[:, 2] > 1e-3):
-            rows, cols, _ = self.project(corners)
-            r0, r1 = np.clip([rows.min(), rows.max() + 1], 0, h)
-            c0, c1 = np.clip([cols.min(), cols.max() + 1], 0, w)
-        else:  # the camera is inside or behind the box: every pixel may hold a point of it
-            r0, r1, c0, c1 = 0, h, 0, w
-        window = depth[r0:r1, c0:c1]
-        v, u = np.nonzero(window > 0)
-        z = window[v, u].astype(np.float64)
-        u_full, v_full = (u + c0) * self.stride, (v + r0) * self.stride
-        points = np.stack([(u_full - self.cx) / self.fx * z, (v_full - self.cy) / self.fy * z, z], axis=1)
+        window = self._window(frame_id, pose, half)
+        # the camera inside or behind the box: every pixel may hold a point of it
+        rows, cols = (slice(0, depth.shape[0]), slice(0, depth.shape[1])) if window is None else window[:2]
+        seen = depth[rows, cols]
+        v, u = np.nonzero(seen > 0)
+        z = seen[v, u].astype(np.float64)
+        points = self._backproject((u + cols.start) * self.stride, (v + rows.start) * self.stride, z)
         local = (points - pose[:3, 3]) @ pose[:3, :3]
         points = points[np.all(np.abs(local) <= half, axis=1)]
         # a plane that goes on beyond the box (a table, a wall) and stands still is the scene's: where the object moves,
         # its points in the box would hold the object's pose to where it stood; where the camera moves, the plane
         # moves too (and may hold an object standing on it)
+        beyond = lambda inliers: np.mean(np.any(np.abs((inliers - pose[:3, 3]) @ pose[:3, :3]) > half + BEYOND, axis=1))
         scene = [(normal, d) for normal, d, inliers in self.planes(frame_id)
-                 if np.mean(np.any(np.abs((inliers - pose[:3, 3]) @ pose[:3, :3]) > half + BEYOND, axis=1)) >= BEYOND_SHARE
-                 and self.still(frame_id, normal, d)]
+                 if beyond(inliers) >= BEYOND_SHARE and self.still(frame_id, normal, d)]
         if not scene:
             return points
         reach = DROP_SIGMAS * depth_sigma(points[:, 2])
-        if not any(np.any(np.abs(points @ normal + d) < reach) for normal, d in scene) or not self.moving(frame_id, pose, half):
-            return points  # none in the box; or the object rests, and what it rests on moves with it, and holds it
+        if not any(np.any(np.abs(points @ normal + d) < reach) for normal, d in scene):
+            return points
+        if window is not None and not self._changed(frame_id, window):
+            return points  # the object rests: what it rests on moves with it, and holds it
         for normal, d in scene:
             on = np.abs(points @ normal + d) < reach
             if on.mean() < MAX_CROP_SHARE:

@@ -38,10 +38,10 @@ MAX_CROP_SHARE = 0.2
 
 
 def scene_planes(grid: np.ndarray, rng: np.random.Generator) -> list[tuple[np.ndarray, float, np.ndarray]]:
-    """Up to MAX_SCENE_PLANES planes (unit normal, offset d with n.x + d = 0, about KEPT_INLIERS of their inlier points) of an image's
-    points ``grid`` (h, w, 3, m; z = 0 where none), largest first: RANSAC on triples of nearby pixels (a plane that
-    fills a twentieth of the image is then drawn as often as a twentieth of the triples), each plane refit to its
-    inliers by least squares."""
+    """Up to MAX_SCENE_PLANES planes (unit normal, offset d with n.x + d = 0, about KEPT_INLIERS of their inlier
+    points) of an image's points ``grid`` (h, w, 3, m; z = 0 where none), largest first: RANSAC on triples of nearby
+    pixels (a plane that fills a twentieth of the image is then drawn as often as a twentieth of the triples), each
+    plane refit to its inliers by least squares."""
     h, w = grid.shape[:2]
     valid = grid[..., 2] > 0
     points = grid[valid]
@@ -51,26 +51,26 @@ def scene_planes(grid: np.ndarray, rng: np.random.Generator) -> list[tuple[np.nd
     for _ in range(MAX_SCENE_PLANES):
         if remaining.sum() < MIN_PLANE_SHARE * total:
             break
-        rows, cols = np.nonzero(valid & (index >= 0) & remaining[np.maximum(index, 0)])
+        rows, cols = np.nonzero(valid & remaining[np.maximum(index, 0)])
         first = rng.integers(0, len(rows), PLANE_TRIALS)
-        offsets = rng.integers(-PLANE_REACH, PLANE_REACH + 1, (2, PLANE_TRIALS, 2))
-        r = np.clip(rows[first] + offsets[..., 0], 0, h - 1)
-        c = np.clip(cols[first] + offsets[..., 1], 0, w - 1)
-        ia, ib, ic = index[rows[first], cols[first]], index[r[0], c[0]], index[r[1], c[1]]
+        steps = rng.integers(-PLANE_REACH, PLANE_REACH + 1, (2, PLANE_TRIALS, 2))  # the two other pixels of each triple
+        near_rows = np.clip(rows[first] + steps[..., 0], 0, h - 1)
+        near_cols = np.clip(cols[first] + steps[..., 1], 0, w - 1)
+        ia, ib, ic = index[rows[first], cols[first]], index[near_rows[0], near_cols[0]], index[near_rows[1], near_cols[1]]
         ok = (ib >= 0) & (ic >= 0)
-        a, b, c3 = points[ia[ok]], points[ib[ok]], points[ic[ok]]
-        normal = np.cross(b - a, c3 - a)
+        a, b, c = points[ia[ok]], points[ib[ok]], points[ic[ok]]
+        normal = np.cross(b - a, c - a)
         length = np.linalg.norm(normal, axis=1)
         fine = length > 1e-9
         normal, a = normal[fine] / length[fine, None], a[fine]
         left = points[remaining]
-        offsets_ = np.einsum("ij,ij->i", normal, a)
+        offsets = np.einsum("ij,ij->i", normal, a)
         # scored on a sample first, counted on every point for the best few: the count is the time
         sample = left[rng.choice(len(left), min(len(left), PLANE_SAMPLE), replace=False)].astype(np.float32)
-        scores = sample @ np.ascontiguousarray(normal.T, dtype=np.float32) - offsets_.astype(np.float32)
+        scores = sample @ np.ascontiguousarray(normal.T, dtype=np.float32) - offsets.astype(np.float32)
         scores = np.count_nonzero(np.abs(scores, out=scores) < PLANE_DISTANCE, axis=0)
         few = np.argsort(-scores, kind="stable")[:PLANE_FINALISTS]
-        counts = (np.abs(left @ normal[few].T - offsets_[few]) < PLANE_DISTANCE).sum(axis=0)
+        counts = (np.abs(left @ normal[few].T - offsets[few]) < PLANE_DISTANCE).sum(axis=0)
         if not len(counts) or counts.max() < MIN_PLANE_SHARE * total:
             break
         best = int(few[np.argmax(counts)])
