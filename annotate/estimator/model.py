@@ -4,14 +4,35 @@ Points of all frames, moved into the object frame, are averaged per voxel and pe
 signed axes of the normal's largest component), so the two sides of a thin wall stay apart. A voxel that the
 frames see through more often than ``max_free_share`` of the time they see it is dropped: a hand that held the
 object and let go is measured where, in the other frames, the camera sees the background.
+
+For symmetry y the model can be made a surface of revolution about its own axis (:func:`revolution_axis`,
+:func:`revolved`), where the data agree: its sides, seen by different frames, then share one axis.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from .observations import FrameCrops
 from .registration import Model
+
+#: the axis fit's pull of its tilt towards y: a tilt of 1 rad costs as much as one point this many voxels off
+AXIS_RIDGE = 0.1
+#: fits of the axis, each to the profile bins of the axis before
+AXIS_PASSES = 3
+#: a model whose walls (points with radial normals) lie further from their profile than this many voxels (median) is
+#: no body of revolution; a face square to the axis fits every shape
+MAX_PROFILE_DEVIATION = 0.5
+#: the axis is fitted to at most this many of the model's points (every n-th): its four parameters need few
+AXIS_FIT_POINTS = 6000
+#: the axis parameters' typical sizes (rad, rad, m, m), which scale the fit's steps
+AXIS_SCALES = (0.01, 0.01, 0.002, 0.002)
+#: Cauchy reweightings of a profile bin's mean
+PROFILE_PASSES = 4
+#: a profile point near the axis is still spun to this many points
+MIN_SPINS = 6
 
 
 def _keys(points: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray:
@@ -69,3 +90,85 @@ def fused_model(crops: FrameCrops, poses: dict[str, np.ndarray], parts: dict[str
     free, seen = seen_through(model, crops, poses, tolerance)
     keep = free <= max_free_share * np.maximum(free + seen, 1)
     return Model(model.points[keep], model.normals[keep])
+
+
+def _profile_bins(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per point (axis frame: the axis is y through the origin): its profile bin (an inverse index), whether its
+    normal is mostly radial (the bin then averages its radius, in bins of height; else its height, in bins of radius),
+    its radius and its normal's radial part. Each sign of the normal has bins of its own (a wall's two sides)."""
+    x, y, z = points.T
+    r = np.hypot(x, z)
+    n_r = (normals[:, 0] * x + normals[:, 2] * z) / np.maximum(r, 1e-9)
+    radial = np.abs(n_r) >= np.abs(normals[:, 1])
+    facing = np.where(radial, np.where(n_r > 0, 0, 1), np.where(normals[:, 1] > 0, 2, 3))
+    along = np.floor(np.where(radial, y, r) / voxel).astype(np.int64)
+    _, inverse = np.unique(facing * (1 << 40) + along + (1 << 30), return_inverse=True)
+    return inverse, radial, r, n_r
+
+
+def _axis_frame(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The axis (rotation R turning y onto it, a point c on it) of parameters (tilt about x, tilt about z (rad), c_x, c_z (m))."""
+    return Rotation.from_rotvec([params[0], 0.0, params[1]]).as_matrix(), np.array([params[2], 0.0, params[3]])
+
+
+def revolution_axis(points: np.ndarray, normals: np.ndarray, voxel: float, max_tilt_deg: float, max_shift: float,
+                    start: np.ndarray | None = None) -> np.ndarray | None:
+    """The axis (:func:`_axis_frame`'s parameters) about which a model's ``points`` (object frame, with their unit
+    ``normals``) lie closest to their profile
+    (:func:`_profile_bins`; Cauchy-robust least squares, SciPy, from ``start`` or the object's y), or None where it
+    lies more than ``max_tilt_deg`` / ``max_shift`` (m) from the object's y through the origin (the boxes are not that
+    far off). Fitted to every n-th point, at most AXIS_FIT_POINTS."""
+    step = -(-len(points) // AXIS_FIT_POINTS)
+    points, normals = points[::step], normals[::step]
+    if len(points) < 20:
+        return None
+
+    def deviation(params: np.ndarray, inverse: np.ndarray, radial: np.ndarray, count: np.ndarray) -> np.ndarray:
+        R, c = _axis_frame(params)
+        p = (points - c) @ R
+        value = np.where(radial, np.hypot(p[:, 0], p[:, 2]), p[:, 1])
+        # a weak pull of the tilt towards y: a sphere's axis is free (a bowl's dome), its rim and foot hold it
+        return np.concatenate([value - (np.bincount(inverse, value) / count)[inverse], AXIS_RIDGE * voxel * params[:2]])
+
+    params = np.zeros(4) if start is None else np.asarray(start, dtype=np.float64)
+    for _ in range(AXIS_PASSES):  # the points' bins at the last axis, then the axis that fits them best
+        R, c = _axis_frame(params)
+        inverse, radial, _, _ = _profile_bins((points - c) @ R, normals @ R, voxel)
+        count = np.bincount(inverse).astype(np.float64)
+        params = least_squares(deviation, params, loss="cauchy", f_scale=voxel / 2, x_scale=AXIS_SCALES,
+                               args=(inverse, radial, count)).x
+    if np.degrees(np.hypot(params[0], params[1])) > max_tilt_deg or np.hypot(params[2], params[3]) > max_shift:
+        return None
+    return params
+
+
+def revolved(model: Model, voxel: float, axis: np.ndarray) -> Model | None:
+    """The model made a surface of revolution about ``axis`` (:func:`revolution_axis`), or None where its walls (points
+    whose normals are mostly radial) lie further from their profile than MAX_PROFILE_DEVIATION voxels at the median
+    (a flattened bottle, a square dish).
+
+    The profile: per facing bin (:func:`_profile_bins`, ``voxel`` wide) the Cauchy-weighted mean radius and height
+    (a hand's points on one side do not bulge the whole ring), each spun about the axis every ``voxel`` of its circle."""
+    R, c = _axis_frame(axis)
+    p, n = (model.points - c) @ R, model.normals @ R
+    inverse, radial, r, n_r = _profile_bins(p, n, voxel)
+    value = np.where(radial, r, p[:, 1])
+    weight = np.ones(len(value))
+    for _ in range(PROFILE_PASSES):
+        mean = np.bincount(inverse, weight * value) / np.maximum(np.bincount(inverse, weight), 1e-12)
+        weight = 1.0 / (1.0 + ((value - mean[inverse]) / (voxel / 2)) ** 2)
+    if not radial.any() or np.median(np.abs(value - mean[inverse])[radial]) > MAX_PROFILE_DEVIATION * voxel:
+        return None
+    total = np.bincount(inverse, weight)
+    mean = lambda a: np.bincount(inverse, weight * a) / np.maximum(total, 1e-12)
+    pr, py, nr, ny = mean(r), mean(p[:, 1]), mean(n_r), mean(n[:, 1])
+    length = np.hypot(nr, ny)
+    keep = (np.bincount(inverse) >= 2) & (length > 0.5)  # normals that disagree in a bin give no plane to pair with
+    pr, py, nr, ny = pr[keep], py[keep], nr[keep] / length[keep], ny[keep] / length[keep]
+    spins = np.maximum(MIN_SPINS, np.ceil(2 * np.pi * pr / voxel)).astype(np.int64)
+    which = np.repeat(np.arange(len(pr)), spins)
+    angle = 2 * np.pi * (np.arange(len(which)) - (np.cumsum(spins) - spins)[which]) / spins[which]
+    cos, sin = np.cos(angle), np.sin(angle)
+    spun = np.stack([pr[which] * cos, py[which], pr[which] * sin], axis=1)
+    spun_normals = np.stack([nr[which] * cos, ny[which], nr[which] * sin], axis=1)
+    return Model(spun @ R.T + c, spun_normals @ R.T)

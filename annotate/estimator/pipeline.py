@@ -7,9 +7,10 @@
    chain's last frames; consecutive registered frames give a chain step (their relative pose, its information);
 3. back end: one pose graph of the chain steps, the anchors and the motion prior (graph.py), then the common
    correction that best fits the anchors (the object frame is theirs; the data fix only poses relative to it);
-4. rounds: the model of all frames is fused at the solved poses, without what other frames see through (a hand);
-   every frame is registered to it, and the graph solved again with those registrations; until no frame moves
-   more than ``settled`` or ``rounds`` are done;
+4. rounds: the model of all frames is fused at the solved poses, without what other frames see through (a hand),
+   and for symmetry y spun about its own axis where it is a body of revolution; every frame is registered to it, and
+   the graph solved again with those registrations; until no frame moves more than ``settled`` or ``rounds`` are
+   done;
 5. flags from the estimate: the registration's fitness, the graph's marginal standard deviation, and how far the
    graph pulled the frame from its registration, each with its reason in words.
 """
@@ -32,7 +33,7 @@ from annotate.workers import ordered_map, resolve
 
 from .config import EstimatorConfig
 from .graph import Factor, Solution, sigmas, solve
-from .model import fuse, fused_model
+from .model import fuse, fused_model, revolution_axis, revolved
 from .observations import Crop, FrameCrops
 from .registration import Model, Registration, register, retract
 from .review import frame_figures
@@ -48,6 +49,8 @@ CROP_PASSES = 3
 RECROP_DEG, RECROP_M = 0.5, 0.001
 #: a round registers the frames of each of this many contiguous blocks to the model of the others
 ROUND_BLOCKS = 4
+#: for symmetry y, a model's axis fitted further from the object's y than this many anchor sigmas is no axis
+AXIS_SIGMAS = 3.0
 
 
 def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:
@@ -217,10 +220,12 @@ def _moved(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(degrees.max()), float(np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1).max())
 
 
-def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None]) -> dict[str, Registration]:
+def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None], axis: np.ndarray | None = None) -> tuple[dict[str, Registration], np.ndarray | None]:
     """Every frame registered to the model fused from the frames of the other ROUND_BLOCKS - 1 blocks of the sequence
     (contiguous), at ``poses``: a frame's own points and its neighbours', posed alike, would confirm its pose whatever
-    it is; the other blocks saw the object at poses the chains reached independently."""
+    it is; the other blocks saw the object at poses the chains reached independently. For symmetry y the models are
+    spun about one fitted axis (started from ``axis``, the round before's) where they are bodies of revolution.
+    Returns the registrations and that axis (None: none fitted)."""
     config, ids = setup.config, setup.ids
     at = {f: poses[setup.index[f]] for f in ids}
     parts = dict(zip(ids, ordered_map(lambda f: setup.crop(f, at[f], thin=False), ids, setup.workers)))
@@ -231,8 +236,12 @@ def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None]) -> dict[s
         others = {f: (c.points, c.normals) for f, c in parts.items() if f not in inside} or {f: (c.points, c.normals) for f, c in parts.items()}
         models.append(fused_model(setup.crops, at, others, config.free_space_tolerance, config.max_free_share))
         block_of.update({f: b for f in inside})
+    if setup.symmetric:  # one axis for all sides: a bowl's inside and outside, seen by different frames, tilt alike
+        axis = revolution_axis(np.concatenate([m.points for m in models]), np.concatenate([m.normals for m in models]), setup.crops.voxel, AXIS_SIGMAS * config.anchor_sigma_deg, AXIS_SIGMAS * config.anchor_sigma_m, axis)
+        if axis is not None:
+            models = [revolved(m, setup.crops.voxel, axis) or m for m in models]
     results = ordered_map(lambda f: setup.register(f, at[f], models[block_of[f]])[0], ids, setup.workers, done=lambda f, _: done())
-    return dict(zip(ids, results))
+    return dict(zip(ids, results)), axis
 
 
 def _solve(setup: _Setup, initial: np.ndarray, registrations: list[Factor], steps: list[Factor], anchors: dict[int, np.ndarray]) -> Solution:
@@ -275,9 +284,9 @@ def track_sequence(
     poses = common_correction(_solve(setup, initial, [], steps, setup.at_depth(anchored, initial)).poses, anchored, setup.offsets)
     # 4: rounds against the model of all frames
     registrations: dict[str, Registration] = {}
-    solution = None
+    solution, axis = None, None
     for _ in range(config.rounds):
-        registrations = _round(setup, poses, done)
+        registrations, axis = _round(setup, poses, done, axis)
         factors = [Factor(setup.index[f], None, r.pose, r.information) for f, r in registrations.items() if r.ok]
         solution = _solve(setup, poses, factors, steps, setup.at_depth(anchored, poses))
         new = common_correction(solution.poses, anchored, setup.offsets)
