@@ -159,9 +159,8 @@ def revolved(model: Model, voxel: float, axis: np.ndarray) -> Model | None:
         weight = 1.0 / (1.0 + ((value - mean[inverse]) / (voxel / 2)) ** 2)
     if not radial.any() or np.median(np.abs(value - mean[inverse])[radial]) > MAX_PROFILE_DEVIATION * voxel:
         return None
-    total = np.bincount(inverse, weight)
-    mean = lambda a: np.bincount(inverse, weight * a) / np.maximum(total, 1e-12)
-    pr, py, nr, ny = mean(r), mean(p[:, 1]), mean(n_r), mean(n[:, 1])
+    total = np.maximum(np.bincount(inverse, weight), 1e-12)
+    pr, py, nr, ny = (np.bincount(inverse, weight * a) / total for a in (r, p[:, 1], n_r, n[:, 1]))
     length = np.hypot(nr, ny)
     keep = (np.bincount(inverse) >= 2) & (length > 0.5)  # normals that disagree in a bin give no plane to pair with
     pr, py, nr, ny = pr[keep], py[keep], nr[keep] / length[keep], ny[keep] / length[keep]

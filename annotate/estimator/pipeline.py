@@ -237,7 +237,8 @@ def _round(setup: _Setup, poses: np.ndarray, done: Callable[[], None], axis: np.
         models.append(fused_model(setup.crops, at, others, config.free_space_tolerance, config.max_free_share))
         block_of.update({f: b for f in inside})
     if setup.symmetric:  # one axis for all sides: a bowl's inside and outside, seen by different frames, tilt alike
-        axis = revolution_axis(np.concatenate([m.points for m in models]), np.concatenate([m.normals for m in models]), setup.crops.voxel, AXIS_SIGMAS * config.anchor_sigma_deg, AXIS_SIGMAS * config.anchor_sigma_m, axis)
+        points, normals = np.concatenate([m.points for m in models]), np.concatenate([m.normals for m in models])
+        axis = revolution_axis(points, normals, setup.crops.voxel, AXIS_SIGMAS * config.anchor_sigma_deg, AXIS_SIGMAS * config.anchor_sigma_m, axis)
         if axis is not None:
             models = [revolved(m, setup.crops.voxel, axis) or m for m in models]
     results = ordered_map(lambda f: setup.register(f, at[f], models[block_of[f]])[0], ids, setup.workers, done=lambda f, _: done())
