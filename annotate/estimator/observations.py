@@ -80,7 +80,10 @@ class FrameCrops:
 
     def moving(self, frame_id: str, pose: np.ndarray, half: np.ndarray) -> bool:
         """Whether the depth around the box (at ``pose``) changed from the frame before or to the frame after."""
-        window = self._window(frame_id, pose, half)
+        return self._moves(frame_id, self._window(frame_id, pose, half))
+
+    def _moves(self, frame_id: str, window: tuple[slice, slice, float, float] | None) -> bool:
+        """:meth:`moving` for the box's ``window`` (:meth:`_window`)."""
         return window is None or self._changed(frame_id, window)  # inside or behind the box: nothing says it rests
 
     def _window(self, frame_id: str, pose: np.ndarray, half: np.ndarray) -> tuple[slice, slice, float, float] | None:
@@ -144,15 +147,14 @@ class FrameCrops:
         if not scene:
             return points
         reach = DROP_SIGMAS * depth_sigma(points[:, 2])
-        if not any(np.any(np.abs(points @ normal + d) < reach) for normal, d in scene):
-            return points
-        if window is not None and not self._changed(frame_id, window):
-            return points  # the object rests: what it rests on moves with it, and holds it
-        for normal, d in scene:
-            on = np.abs(points @ normal + d) < reach
-            if on.mean() < MAX_CROP_SHARE:
-                points, reach = points[~on], reach[~on]
-        return points
+        on = [np.abs(points @ normal + d) < reach for normal, d in scene]
+        if not any(plane.any() for plane in on) or not self._moves(frame_id, window):
+            return points  # nothing on the planes, or the object rests: what it rests on moves with it, and holds it
+        dropped = np.zeros(len(points), dtype=bool)
+        for plane in on:  # in turn: each plane's share is of the points the planes before left
+            if plane[~dropped].mean() < MAX_CROP_SHARE:
+                dropped |= plane
+        return points[~dropped]
 
     def crop(self, frame_id: str, pose: np.ndarray, half: np.ndarray, max_points: int = 0, seed: int = 0) -> Crop:
         """The frame's points in the box, thinned to the voxel grid, with normals facing the camera; at most
