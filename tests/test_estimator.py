@@ -4,6 +4,7 @@ the information it reports, which boxes are anchors, and a rendered sequence tra
 from __future__ import annotations
 
 import subprocess
+from dataclasses import replace
 import sys
 
 import numpy as np
@@ -20,8 +21,9 @@ from annotate.estimator.graph import Factor, _steady, sigmas, solve, without_spi
 from annotate.estimator.model import fuse, revolution_axis, revolved
 from annotate.estimator.observations import Crop, FrameCrops
 from annotate.estimator.scene import PLANE_DISTANCE
-from annotate.estimator.pipeline import _closure, initial_poses
+from annotate.estimator.pipeline import CLOSURE_SIGMAS, _closure, chain_trust, initial_poses
 from annotate.estimator.registration import Model, offset, register, retract
+from annotate.estimator.review import MAX_WEAK_TURN, flag_weak_runs
 from sequences.annotation import Annotation, FramePose, load_annotation, save_annotation
 from sequences.reader import open_sequence
 from sequences.sensor_noise import depth_sigma
@@ -136,6 +138,29 @@ def test_a_chains_closure_carries_its_last_velocity_one_frame_on_and_counts_in_a
     assert _closure(SimpleNamespace(config=config, symmetric=True), start, poses, ["1", "2", "3"], turn(40)) < 1e-6
 
 
+def test_a_chain_that_does_not_close_is_outweighed_by_the_one_that_does():
+    truth = _walk(21, seed=3)
+    info = np.diag([1e4] * 3 + [1e7] * 3)  # a step's sigma: 0.57 deg and 0.3 mm
+    exact = [Factor(i, i + 1, np.linalg.inv(truth[i]) @ truth[i + 1], info) for i in range(20)]
+    # the chain from the anchor at 20 back to 0 drifts 1 deg and 1 mm a step, each step within 2 sigmas of its own
+    drift = retract(np.eye(4), np.array([np.radians(1.0), 0, 0, 0.001, 0, 0]))
+    astray = [Factor(i, i + 1, np.linalg.inv(truth[i]) @ truth[i + 1] @ drift, info) for i in range(20)]
+    back = truth.copy()
+    for i in range(19, -1, -1):
+        back[i] = back[i + 1] @ np.linalg.inv(astray[i].measured)
+    closure = _angles(back[:1], truth[:1])[0] / 3 + 1000 * np.linalg.norm(back[0, :3, 3] - truth[0, :3, 3]) / 5  # anchor sigmas
+    assert closure > 2 * CLOSURE_SIGMAS and chain_trust(closure) < 0.25
+    assert chain_trust(CLOSURE_SIGMAS) == 1.0 and chain_trust(0.0) == 1.0 and chain_trust(2 * CLOSURE_SIGMAS) == 0.25
+
+    def worst(weight: float) -> float:
+        steps = exact + [replace(f, weight=weight) for f in astray]
+        solution = solve(truth, [], steps, {0: truth[0], 20: truth[20]}, sigmas(3, 0.005), sigmas(1.5, 0.003), False, 2.0)
+        return _angles(solution.poses, truth).max()
+
+    assert worst(1.0) > 2.0  # trusted alike, the drift spreads over the run and moves the anchors 3 deg
+    assert worst(chain_trust(closure)) < 0.4 * worst(1.0)
+
+
 def test_graph_registrations_fix_poses_and_an_outlier_is_held_by_the_robust_kernel():
     truth = _walk(30, seed=1)
     info = np.diag([1e4] * 3 + [1e7] * 3)
@@ -219,6 +244,24 @@ def test_a_cylinder_leaves_its_spin_without_information():
     info = result.information
     assert info[1, 1] < 1e-6 * info[0, 0]  # the spin about y: no information
     assert info[4, 4] < 1e-6 * info[3, 3]  # and the slide along y neither
+
+
+def test_a_run_of_weak_turns_is_flagged_whole_and_a_box_ends_it():
+    # turns:       a run 1..5 with one frame over the limit, a lone 2.1 at 7 (no frame over: kept), a run 9..12 cut by the box at 11
+    turns = [1.2, 2.1, 2.05, 2.6, 2.0, 2.15, 1.1, 2.1, 1.0, 2.1, 2.3, 2.4, 2.1, None]
+    figures = [{} if t is None else {"weak_turn": t} for t in turns]
+    for f in figures:
+        if f.get("weak_turn", 0) > MAX_WEAK_TURN:
+            f.update(flagged=True, flag_reason="own reason")
+    anchored = np.zeros(len(turns), dtype=bool)
+    anchored[11] = True
+    flag_weak_runs(figures, anchored)
+    flagged = [k for k, f in enumerate(figures) if f.get("flagged")]
+    assert flagged == [1, 2, 3, 4, 5, 9, 10, 11]  # 11 is the box (its own figures flagged it; the pipeline keeps boxes unflagged)
+    assert "5 frames in a row" in figures[2]["flag_reason"] and "2.6x" in figures[2]["flag_reason"]
+    assert figures[3]["flag_reason"] == "own reason"  # a frame over the limit keeps its own reason alone
+    assert "2 frames in a row" in figures[9]["flag_reason"]  # 9..10: the box at 11 ends the run; 12 stays unflagged
+    assert not figures[12].get("flagged")
 
 
 def test_fuse_keeps_the_two_sides_of_a_thin_wall_apart():

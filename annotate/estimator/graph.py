@@ -3,7 +3,8 @@
 Nodes: the object's pose in each frame (GTSAM Pose3, object to camera). Factors, each error in GTSAM's right
 tangent (w, v) of the object frame:
 - registration: a frame registered to the model, a prior with the registration's information;
-- chain step: two consecutive frames of a chain, a between factor with the later frame's information;
+- chain step: two consecutive frames of a chain, a between factor with the later frame's information, scaled by
+  the trust in its chain;
 - anchor: a box a person placed, refined or accepted, a prior with the placement sigma;
 - motion: every three consecutive frames keep a constant velocity (the change of the object-frame motion
   Log((T0^-1 T1)^-1 (T1^-1 T2)), the motion sigma per frame), so that where the points leave a direction free (a
@@ -36,12 +37,14 @@ REMOVED_SHARE = 1e-9
 @dataclass
 class Factor:
     """A registration (``j`` is None: a prior on frame ``i``) or chain step (frame ``i`` to ``j``): the measured pose
-    (4x4; for a step T_i^-1 T_j) and its information (6x6, (w, v))."""
+    (4x4; for a step T_i^-1 T_j), its information (6x6, (w, v)) and, for a step, the trust in its chain (0-1), which
+    scales its information and the chain's motion it holds."""
 
     i: int
     j: int | None
     measured: np.ndarray
     information: np.ndarray
+    weight: float = 1.0
 
 
 def without_spin(information: np.ndarray) -> np.ndarray:
@@ -105,7 +108,7 @@ def solve(
         graph.add(gtsam.PriorFactorPose3(f.i, gtsam.Pose3(f.measured), _noise(spinless(f.information), robust_k)))
     floor = np.diag(1.0 / motion_sigmas**2)
     for f in steps:
-        graph.add(gtsam.BetweenFactorPose3(f.i, f.j, gtsam.Pose3(f.measured), _noise(spinless(f.information) + floor, robust_k)))
+        graph.add(gtsam.BetweenFactorPose3(f.i, f.j, gtsam.Pose3(f.measured), _noise(f.weight * (spinless(f.information) + floor), robust_k)))
     anchor_noise = gtsam.noiseModel.Diagonal.Sigmas(anchor_sigmas)
     for k, pose in anchors.items():
         graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(pose), anchor_noise))

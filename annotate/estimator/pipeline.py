@@ -36,7 +36,7 @@ from .graph import Factor, Solution, sigmas, solve
 from .model import fuse, fused_model, revolution_axis, revolved
 from .observations import Crop, FrameCrops
 from .registration import Model, Registration, register, retract
-from .review import frame_figures
+from .review import flag_weak_runs, frame_figures
 from .timing import colour_offsets, shifted, velocities
 
 Progress = Callable[[int, int], None]
@@ -51,6 +51,9 @@ RECROP_DEG, RECROP_M = 0.5, 0.001
 ROUND_BLOCKS = 4
 #: for symmetry y, a model's axis fitted further from the object's y than this many anchor sigmas is no axis
 AXIS_SIGMAS = 3.0
+#: a chain closing within this many anchor sigmas (degrees over their sigma plus millimetres over theirs) is trusted
+#: fully: two boxes each off by one sigma, in opposite directions, close at 4
+CLOSURE_SIGMAS = 4.0
 
 
 def _ordered_range(sequence: Sequence, frames: list[str] | None) -> list[str]:
@@ -174,10 +177,18 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
     steps: list[Factor] = []
     runs = []
     for (a, mark, order, into), (poses, chain_steps) in zip(jobs, chains):
-        steps += chain_steps
         closure = 0.0 if into is None else _closure(setup, placed[a], poses, order, placed[into])
+        steps += [replace(f, weight=chain_trust(closure)) for f in chain_steps]
         runs.append((mark, {index[f]: pose for f, pose in poses.items()}, closure))
     return initial_poses(len(ids), {index[a]: placed[a] for a in anchors}, runs), steps
+
+
+def chain_trust(closure: float) -> float:
+    """The weight (0-1) of a chain's steps in the graph from its closure (:func:`_closure`, anchor sigmas): full
+    while the chain ends within CLOSURE_SIGMAS of the anchor it runs into, then falling with the square of the
+    closure. A chain that went astray drifted by small steps that no robust kernel sees one by one; beside the chain
+    that closes, it would pull the frames between them halfway to its error."""
+    return min(1.0, (CLOSURE_SIGMAS / max(closure, 1e-9)) ** 2)
 
 
 def initial_poses(count: int, anchors: dict[int, np.ndarray], runs: list[tuple[int, dict[int, np.ndarray], float]]) -> np.ndarray:
@@ -300,9 +311,10 @@ def track_sequence(
     # 5: the document, at the colour frames' times
     poses = shifted(poses, setup.offsets)
     out = annotation.copy()
-    for k, frame_id in enumerate(ids):
-        registration = registrations.get(frame_id)
-        figures = frame_figures(poses[k], registration, None if solution is None else solution.covariances[k], setup.symmetric, config)
+    every = [frame_figures(poses[k], registrations.get(f), None if solution is None else solution.covariances[k], setup.symmetric, config)
+             for k, f in enumerate(ids)]
+    flag_weak_runs(every, np.array([f in placed for f in ids]))
+    for k, (frame_id, figures) in enumerate(zip(ids, every)):
         if frame_id in placed:
             old = annotation.frames[frame_id]
             extra = {key: v for key, v in old.extra.items() if key not in ("flagged", "flag_reason")}

@@ -5,7 +5,8 @@ Figures (document keys): ``fitness`` (share of the frame's points in the box tha
 the frame's weakest rotation and translation; for symmetry y the rotation about y is left out), ``pull_deg`` and
 ``pull_mm`` (how far the solved pose lies from the frame's own registration), ``weak_turn`` (how much less certain
 its registration leaves the weakest rotation than the others). A frame is flagged, with the reason in words, when
-one of them passes its limit (:class:`EstimatorConfig`, MAX_WEAK_TURN).
+one of them passes its limit (:class:`EstimatorConfig`, MAX_WEAK_TURN), or lies in a run of weak turns
+(:func:`flag_weak_runs`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,10 @@ from .registration import Registration
 #: enough that a box seen on one face, whose edges still fix the turn, passes; low enough to catch a plain mug's free
 #: spin (chosen on the dev split with benchmarks/compare_engines.py)
 MAX_WEAK_TURN = 2.2
+#: ... and every frame next to such a frame, in a run of frames whose weakest rotation stays this many times less
+#: certain: the run's registrations pair with one model, so they share its error in that turn, and the motion that
+#: carries it through the run drifts with no frame to stop it (hysteresis, as an edge detector's two thresholds)
+WEAK_RUN_TURN = 2.0
 
 
 def marginal_sigmas(covariance: np.ndarray, symmetric: bool) -> tuple[float, float]:
@@ -79,3 +84,26 @@ def frame_figures(pose: np.ndarray, registration: Registration | None, covarianc
         figures["flagged"] = True
         figures["flag_reason"] = "; ".join(reasons)
     return figures
+
+
+def weak_runs(turns: np.ndarray) -> list[tuple[int, int]]:
+    """The runs [start, end) of consecutive frames whose ``weak_turn`` (NaN: none measured) is at least WEAK_RUN_TURN
+    and that hold at least one frame over MAX_WEAK_TURN."""
+    weak = np.nan_to_num(turns, nan=0.0) >= WEAK_RUN_TURN
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], weak.astype(np.int8), [0]])))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2]) if np.nanmax(turns[a:b]) > MAX_WEAK_TURN]
+
+
+def flag_weak_runs(figures: list[dict], anchored: np.ndarray) -> None:
+    """Flag, in place, the frames of ``figures`` (in frame order) in a run of weak turns (:func:`weak_runs`) that
+    their own figures left unflagged, saying which run. A frame with a person's box (``anchored``, (n,) bool) ends a
+    run: its box holds the turn."""
+    turns = np.array([f.get("weak_turn", np.nan) for f in figures], dtype=np.float64)
+    turns[np.asarray(anchored, dtype=bool)] = np.nan
+    for start, end in weak_runs(turns):
+        for k in range(start, end):
+            if turns[k] <= MAX_WEAK_TURN:
+                reason = (f"one of {end - start} frames in a row whose shape leaves one turn nearly free (from "
+                          f"{turns[k]:.1f}x to {np.max(turns[start:end]):.1f}x less certain than the others): the motion carries it")
+                figures[k]["flagged"] = True
+                figures[k]["flag_reason"] = "; ".join(filter(None, [figures[k].get("flag_reason"), reason]))
