@@ -19,17 +19,17 @@ pipq() {  # pip, quiet, without the noise of this machine's find-links warnings
 }
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
-stamp=.venv/.installed-$want-$(cat pyproject.toml scripts/setup.sh | sha1sum | cut -c1-12)
+stamp=.venv/.installed-$want-$(cat pyproject.toml constraints.txt scripts/setup.sh | sha1sum | cut -c1-12)
 if [ ! -e "$stamp" ]; then
   pipq --upgrade pip
   if [ "$want" = test ]; then
-    pipq -e ".[test]"
+    pipq -c constraints.txt -e ".[test]"
     # cpas_toolbox 1.0.0 pins matplotlib<3.6 (does not build on 3.11): install it without its pins,
     # plus what its metrics and Redwood dataset modules import (torch: the CPU wheel on this disk).
     pipq --no-deps cpas-toolbox==1.0.0
-    pipq torch==2.13.0 yoco gdown requests
+    pipq -c constraints.txt torch==2.13.0 yoco gdown requests
   else
-    pipq -e .
+    pipq -c constraints.txt -e .
   fi
   touch "$stamp"
 fi
