@@ -4,8 +4,8 @@ the information it reports, which boxes are anchors, and a rendered sequence tra
 from __future__ import annotations
 
 import subprocess
-from dataclasses import replace
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest

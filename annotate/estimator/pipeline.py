@@ -178,7 +178,8 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
     runs = []
     for (a, mark, order, into), (poses, chain_steps) in zip(jobs, chains):
         closure = 0.0 if into is None else _closure(setup, placed[a], poses, order, placed[into])
-        steps += [replace(f, weight=chain_trust(closure)) for f in chain_steps]
+        trust = chain_trust(closure)
+        steps += [replace(f, weight=trust) for f in chain_steps]
         runs.append((mark, {index[f]: pose for f, pose in poses.items()}, closure))
     return initial_poses(len(ids), {index[a]: placed[a] for a in anchors}, runs), steps
 

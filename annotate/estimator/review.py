@@ -101,9 +101,10 @@ def flag_weak_runs(figures: list[dict], anchored: np.ndarray) -> None:
     turns = np.array([f.get("weak_turn", np.nan) for f in figures], dtype=np.float64)
     turns[np.asarray(anchored, dtype=bool)] = np.nan
     for start, end in weak_runs(turns):
+        weakest = np.max(turns[start:end])
         for k in range(start, end):
             if turns[k] <= MAX_WEAK_TURN:
                 reason = (f"one of {end - start} frames in a row whose shape leaves one turn nearly free (from "
-                          f"{turns[k]:.1f}x to {np.max(turns[start:end]):.1f}x less certain than the others): the motion carries it")
+                          f"{turns[k]:.1f}x to {weakest:.1f}x less certain than the others): the motion carries it")
                 figures[k]["flagged"] = True
                 figures[k]["flag_reason"] = "; ".join(filter(None, [figures[k].get("flag_reason"), reason]))
