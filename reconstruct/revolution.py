@@ -15,8 +15,9 @@ rest, and only at the heights where the observed surface is round:
    ROUND_TOLERANCE_VOXELS voxels) or when too few bins hold data to tell (MIN_BINS): then the prior stands;
    the verdicts are then smoothed over VERDICT_SLICES slices (a cap's slice makes no wall to judge);
 5. the fill: an unobserved voxel of a round slice is carved when its ring (the voxels of that height at the
-   same radius about the axis, to half a voxel) has OBSERVED_CARVED_SHARE of its observed voxels carved;
-   observed voxels keep the carving's verdict, and nothing is ever added.
+   same radius about the axis, to half a voxel) has OBSERVED_CARVED_SHARE of its observed voxels carved, those
+   counted as at least OBSERVED_FLOOR of the ring (a glimpse through a can's opened lid is no evidence for the
+   rest of its inside); observed voxels keep the carving's verdict, and nothing is ever added.
 
 A square bowl, a flask-shaped bottle or a rectangular can keep their carved shape; a round bottle whose
 back no frame saw gets it from its front.
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .carving import OBSERVED_CARVED_SHARE, VoxelGrid
+from .carving import OBSERVED_CARVED_SHARE, OBSERVED_FLOOR, VoxelGrid
 
 #: Angular bins of a slice's outer profile.
 ANGLE_BINS = 48
@@ -152,6 +153,7 @@ def revolved_fill(occupied: np.ndarray, observed: np.ndarray, grid: VoxelGrid, f
     index = (np.arange(ny)[:, None] * n_rings + ring[None, :]).reshape(-1)
     carved_count = np.bincount(index, weights=carved.reshape(-1), minlength=ny * n_rings)
     seen_count = np.bincount(index, weights=seen.reshape(-1), minlength=ny * n_rings)
-    ring_carved = (seen_count > 0) & (carved_count >= carved_share * seen_count)
+    total = np.bincount(index, minlength=ny * n_rings)
+    ring_carved = (seen_count > 0) & (carved_count >= carved_share * np.maximum(seen_count, OBSERVED_FLOOR * total))
     fill_carves = ring_carved[index].reshape(ny, nx, nz).transpose(1, 0, 2) & fit.round[None, :, None]
     return occupied & ~(fill_carves & ~observed)

@@ -175,3 +175,38 @@ def test_the_cells_that_preselect_near_points_miss_no_pair_within_the_tolerance(
         missed += int((near & ~_near_cells(measured, low, cells)[tuple(cell_of.T)]).sum())
         tested += int(near.sum())
     assert tested > 10_000 and missed == 0
+
+
+def _hollow_can_grid(observed_arc_deg: float):
+    """A solid cylinder (radius 30 mm, 2 mm voxels) whose wall's voxels were seen just behind the surface and, through
+    an opening, the voxels of the ring at radius 20 mm (to the fill's half voxel) within ``observed_arc_deg`` of +x
+    seen free (carved); everything else inside is unobserved. Returns the grid, the occupancy, what was observed and
+    that ring's voxels."""
+    from reconstruct.carving import VoxelGrid
+
+    grid = VoxelGrid(origin=np.array([-0.04, -0.01, -0.04]), voxel_size=0.002, shape=(41, 11, 41))
+    c = grid.centres(np.float64).reshape(grid.shape + (3,))
+    radius, angle = np.hypot(c[..., 0], c[..., 2]), np.degrees(np.abs(np.arctan2(c[..., 2], c[..., 0])))
+    occupied = radius <= 0.030
+    wall = occupied & (radius > 0.027)
+    ring = np.rint(radius / 0.001) == 20
+    seen_free = ring & (angle <= observed_arc_deg / 2)
+    occupied &= ~seen_free
+    return grid, occupied, wall | seen_free, ring
+
+
+@pytest.mark.parametrize("arc, carved", [(10.0, False), (120.0, True)])
+def test_the_revolved_fill_carves_a_ring_only_from_enough_of_it_seen(arc, carved):
+    """A glimpse of a ring through a small opening (1 of its 40 voxels per slice, under the floor's tenth of the ring)
+    says little of the rest: the fill leaves the unseen ring solid (a can seen through its opened lid keeps its body).
+    A third of the ring seen free is evidence: the fill carves the rest of it."""
+    from reconstruct.revolution import RevolutionFit, revolved_fill
+
+    grid, occupied, observed, ring = _hollow_can_grid(arc)
+    fit = RevolutionFit(np.zeros(2), np.zeros(grid.shape[1]), np.full(grid.shape[1], 48), np.ones(grid.shape[1], bool))
+    result = revolved_fill(occupied, observed, grid, fit)
+    ring_unseen = ring & ~observed
+    assert ring_unseen.any()
+    assert not result[ring_unseen].any() if carved else result[ring_unseen].all()
+    assert result[observed].tolist() == occupied[observed].tolist()  # the data's own verdicts stay
+    assert not (result & ~occupied).any()  # never adds a voxel
