@@ -21,7 +21,7 @@ from annotate.estimator.graph import Factor, _steady, sigmas, solve, without_spi
 from annotate.estimator.model import fuse, revolution_axis, revolved
 from annotate.estimator.observations import Crop, FrameCrops
 from annotate.estimator.scene import PLANE_DISTANCE
-from annotate.estimator.pipeline import CLOSURE_SIGMAS, _closure, chain_trust, initial_poses
+from annotate.estimator.pipeline import CLOSURE_SIGMAS, _chain_model, _closure, _object_part, _Setup, chain_trust, initial_poses
 from annotate.estimator.registration import Model, offset, register, retract
 from annotate.estimator.review import MAX_WEAK_TURN, flag_weak_runs
 from sequences.annotation import Annotation, FramePose, load_annotation, save_annotation
@@ -469,6 +469,32 @@ def scene(tmp_path_factory):
         off = retract(truth[frame_id], np.concatenate([rng.normal(0, np.radians(1.2), 3), rng.normal(0, 0.002, 3)]))
         annotation.frames[frame_id] = FramePose.from_matrix(off, "manual")
     return root, truth, annotation
+
+
+def test_a_chains_model_leaves_out_a_hand_that_moved_where_its_frames_see_through_it(tmp_path):
+    """The hand (a sphere) holds the box at one contact until frame 12, then at another. A chain's model of its anchor
+    (frame 2) and the frames 14-21, fused alone, keeps the first grasp's points beside the box; the chain's model
+    leaves out those that the later frames see through, and keeps the box and the grasp that stays."""
+    mesh = trimesh.creation.box(extents=[0.10, 0.06, 0.08])
+    truth = render_sequence(tmp_path / "box", mesh, frames=24, seed=5, hand=True)
+    ids = sorted(truth)
+    annotation = Annotation(sequence="box", category="other", symmetry="none", extents=mesh.extents)
+    setup = _Setup(open_sequence(tmp_path / "box"), annotation, ids, EstimatorConfig(workers=1))
+    members = [(ids[k], truth[ids[k]], setup.crop(ids[k], truth[ids[k]])) for k in [2, *range(14, 22)]]
+    fused = fuse([_object_part(crop, pose) for _, pose, crop in members], setup.crops.voxel)
+    chain = _chain_model(setup, members)
+    contacts = mesh.sample(50, seed=5)  # the renderer's contacts: the sphere's centre 25 mm out from each
+    first, second = (c * (1 + 0.025 / np.linalg.norm(c)) for c in contacts[:2])
+
+    def hand_points(model: Model, centre: np.ndarray) -> int:
+        beside = np.max(np.abs(model.points) - mesh.extents / 2, axis=1) > 0.004  # off the box's faces
+        return int(np.sum(beside & (np.linalg.norm(model.points - centre, axis=1) < 0.03)))
+
+    assert hand_points(fused, first) >= 6
+    assert hand_points(chain, first) <= hand_points(fused, first) // 4
+    assert hand_points(chain, second) == hand_points(fused, second) > 0  # held in every frame: no frame sees through it
+    on_box = lambda model: int(np.sum(np.max(np.abs(model.points) - mesh.extents / 2, axis=1) <= 0.004))
+    assert on_box(chain) >= 0.97 * on_box(fused)
 
 
 def test_tracks_a_rendered_box_held_by_a_hand(scene):

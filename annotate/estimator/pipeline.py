@@ -113,16 +113,27 @@ class _Setup:
         return result, crop
 
 
-def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anchor_part: tuple[np.ndarray, np.ndarray], done: Callable[[], None]) -> tuple[dict[str, np.ndarray], list[Factor]]:
-    """Poses along ``order`` from the anchor ``start`` (pose ``placed``), and the chain steps between registered frames.
-
-    The chain's model holds its anchor's points at the placed pose (``anchor_part``, object frame) and the chain's
-    last frames. Not the other anchors' points: each box is off by its own few degrees, so their points, fused at
-    the placed poses, disagree with each other, and a frame registered to them lands between them, biasing the step
-    from the anchor by the boxes' disagreement, not by the object's motion."""
+def _chain_model(setup: _Setup, members: list[tuple[str, np.ndarray, Crop]]) -> Model:
+    """The model of a chain's ``members`` ((frame id, pose, camera-frame crop) each: its anchor and last frames), as
+    the rounds' model: without the voxels those frames see through in more than ``max_free_share`` of the frames that
+    see them (a hand that slid along the object, the table it was lifted from)."""
     config = setup.config
-    recent: deque = deque(maxlen=config.chain_model_frames)
-    model = fuse([anchor_part], setup.crops.voxel)
+    return fused_model(setup.crops, {f: pose for f, pose, _ in members}, {f: (c.points, c.normals) for f, _, c in members},
+                       config.free_space_tolerance, config.max_free_share)
+
+
+def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anchor_crop: Crop, done: Callable[[], None]) -> tuple[dict[str, np.ndarray], list[Factor]]:
+    """Poses along ``order`` from the anchor ``start`` (pose ``placed``, its crop ``anchor_crop``), and the chain steps
+    between registered frames.
+
+    The chain's model holds its anchor's points at the placed pose and the chain's last frames (:func:`_chain_model`).
+    Not the other anchors' points: each box is off by its own few degrees, so their points, fused at the placed
+    poses, disagree with each other, and a frame registered to them lands between them, biasing the step from the
+    anchor by the boxes' disagreement, not by the object's motion."""
+    config = setup.config
+    anchor = (start, placed, anchor_crop)
+    recent: deque = deque(maxlen=config.chain_model_frames)  # (frame id, pose, crop) of the chain's last frames
+    model = fuse([_object_part(anchor_crop, placed)], setup.crops.voxel)  # the free-space test needs other frames
     poses, steps = {}, []
     last_id, last_pose = start, placed
     previous, before = placed, None
@@ -133,8 +144,8 @@ def _chain(setup: _Setup, start: str, placed: np.ndarray, order: list[str], anch
             pose = result.pose
             steps.append(Factor(setup.index[last_id], setup.index[frame_id], np.linalg.inv(last_pose) @ pose, result.information))
             last_id, last_pose = frame_id, pose
-            recent.append(_object_part(crop, pose))
-            model = fuse([anchor_part, *recent], setup.crops.voxel)
+            recent.append((frame_id, pose, crop))
+            model = _chain_model(setup, [anchor, *recent])
         else:
             pose = predicted  # the object lost (hidden, out of view): the motion carries the chain on
         before, previous = previous, pose
@@ -171,8 +182,7 @@ def _front_end(setup: _Setup, anchors: list[str], placed: dict[str, np.ndarray],
         into_after = anchors[n + 1] if n + 1 < len(marks) else None
         into_before = anchors[n - 1] if n > 0 else None
         jobs += [(a, mark, order, into) for order, into in ((after, into_after), (before, into_before)) if order]
-    part = lambda a: _object_part(setup.crop(a, placed[a], thin=False), placed[a])
-    chains = ordered_map(lambda job: _chain(setup, job[0], placed[job[0]], job[2], part(job[0]), lambda: None), jobs, setup.workers,
+    chains = ordered_map(lambda job: _chain(setup, job[0], placed[job[0]], job[2], setup.crop(job[0], placed[job[0]], thin=False), lambda: None), jobs, setup.workers,
                          done=lambda job, _: [done() for _ in job[2]])
     steps: list[Factor] = []
     runs = []
