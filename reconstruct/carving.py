@@ -489,6 +489,36 @@ def carve(
                        None if veto is None else unbacked)
 
 
+class Rings:
+    """The rings of a grid about a vertical axis: the voxels of one height (y index) whose radius about the axis at
+    (x, z) = ``centre`` (object frame, m) rounds to the same half voxel. Sums over rings and spreads back, no loops."""
+
+    def __init__(self, grid: VoxelGrid, centre=(0.0, 0.0)) -> None:
+        x = grid.axis_coordinates(0) - centre[0]
+        z = grid.axis_coordinates(2) - centre[1]
+        ring = np.rint(np.sqrt(x[:, None] ** 2 + z[None, :] ** 2) / (grid.voxel_size / 2)).astype(np.int64).reshape(-1)
+        n_rings = int(ring.max()) + 1
+        self.shape = grid.shape
+        self.count = grid.shape[1] * n_rings
+        self.index = (np.arange(grid.shape[1])[:, None] * n_rings + ring[None, :]).reshape(-1)  # per voxel, (y, x, z) order
+
+    def _flat(self, voxels: np.ndarray) -> np.ndarray:
+        return np.asarray(voxels).transpose(1, 0, 2).reshape(-1)
+
+    def sum(self, voxels: np.ndarray) -> np.ndarray:
+        """(count,) float: per ring, the sum of ``voxels`` ((nx, ny, nz) bool or numbers)."""
+        return np.bincount(self.index, weights=self._flat(voxels), minlength=self.count)
+
+    def size(self) -> np.ndarray:
+        """(count,) int: the voxels of each ring."""
+        return np.bincount(self.index, minlength=self.count)
+
+    def spread(self, per_ring: np.ndarray) -> np.ndarray:
+        """(nx, ny, nz): each voxel takes its ring's value of ``per_ring`` ((count,))."""
+        nx, ny, nz = self.shape
+        return per_ring[self.index].reshape(ny, nx, nz).transpose(1, 0, 2)
+
+
 def revolve_occupancy(occupied: np.ndarray, grid: VoxelGrid, carved_share: float = DEFAULT_CARVED_SHARE, observed: np.ndarray | None = None) -> np.ndarray:
     """Occupancy made symmetric about the object y axis: a ring is carved where ``carved_share`` of it is.
 
@@ -500,17 +530,9 @@ def revolve_occupancy(occupied: np.ndarray, grid: VoxelGrid, carved_share: float
     so the share can be high enough that frames whose pose errors see a thin rim free do not eat it.
     Returns (nx, ny, nz) bool.
     """
-    x = grid.axis_coordinates(0)
-    z = grid.axis_coordinates(2)
-    ring = np.rint(np.sqrt(x[:, None] ** 2 + z[None, :] ** 2) / (grid.voxel_size / 2)).astype(np.int64).reshape(-1)
-    n_rings = int(ring.max()) + 1
-    nx, ny, nz = grid.shape
-    carved = ~occupied.transpose(1, 0, 2).reshape(ny, nx * nz)  # (ny, nx*nz)
-    index = (np.arange(ny)[:, None] * n_rings + ring[None, :]).reshape(-1)
-    carved_count = np.bincount(index, weights=carved.reshape(-1), minlength=ny * n_rings)
-    total = np.bincount(index, minlength=ny * n_rings)
+    rings = Rings(grid)
+    carved_count = rings.sum(~occupied)
+    total = rings.size()
     if observed is not None:
-        seen = np.bincount(index, weights=observed.transpose(1, 0, 2).reshape(-1), minlength=ny * n_rings)
-        total = np.maximum(seen, OBSERVED_FLOOR * total)
-    ring_carved = carved_count >= carved_share * np.maximum(total, 1)
-    return ~ring_carved[index].reshape(ny, nx, nz).transpose(1, 0, 2)
+        total = np.maximum(rings.sum(observed), OBSERVED_FLOOR * total)
+    return ~rings.spread(carved_count >= carved_share * np.maximum(total, 1))

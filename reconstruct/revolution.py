@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .carving import OBSERVED_CARVED_SHARE, OBSERVED_FLOOR, VoxelGrid
+from .carving import OBSERVED_CARVED_SHARE, OBSERVED_FLOOR, Rings, VoxelGrid
 
 #: Angular bins of a slice's outer profile.
 ANGLE_BINS = 48
@@ -143,17 +143,9 @@ def revolved_fill(occupied: np.ndarray, observed: np.ndarray, grid: VoxelGrid, f
                   carved_share: float = OBSERVED_CARVED_SHARE) -> np.ndarray:
     """``occupied`` with the unobserved voxels of round slices carved where their ring's observed voxels are (see the
     module notes). (nx, ny, nz) bool arrays; never adds a voxel."""
-    x = grid.axis_coordinates(0) - fit.centre[0]
-    z = grid.axis_coordinates(2) - fit.centre[1]
-    ring = np.rint(np.sqrt(x[:, None] ** 2 + z[None, :] ** 2) / (grid.voxel_size / 2)).astype(np.int64).reshape(-1)
-    n_rings = int(ring.max()) + 1
-    nx, ny, nz = grid.shape
-    carved = (~occupied & observed).transpose(1, 0, 2).reshape(ny, nx * nz)
-    seen = observed.transpose(1, 0, 2).reshape(ny, nx * nz)
-    index = (np.arange(ny)[:, None] * n_rings + ring[None, :]).reshape(-1)
-    carved_count = np.bincount(index, weights=carved.reshape(-1), minlength=ny * n_rings)
-    seen_count = np.bincount(index, weights=seen.reshape(-1), minlength=ny * n_rings)
-    total = np.bincount(index, minlength=ny * n_rings)
-    ring_carved = (seen_count > 0) & (carved_count >= carved_share * np.maximum(seen_count, OBSERVED_FLOOR * total))
-    fill_carves = ring_carved[index].reshape(ny, nx, nz).transpose(1, 0, 2) & fit.round[None, :, None]
+    rings = Rings(grid, fit.centre)
+    seen_count = rings.sum(observed)
+    carved_count = rings.sum(~occupied & observed)
+    ring_carved = (seen_count > 0) & (carved_count >= carved_share * np.maximum(seen_count, OBSERVED_FLOOR * rings.size()))
+    fill_carves = rings.spread(ring_carved) & fit.round[None, :, None]
     return occupied & ~(fill_carves & ~observed)
