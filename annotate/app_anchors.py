@@ -12,8 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from evaluate.metrics.pose_errors import rotation_error, translation_error
 from sequences.annotation import Annotation, FramePose
 

@@ -207,7 +207,6 @@ class TaskPool:
             raise WorkerDied(_DIED) from error
 
     def __exit__(self, kind, error, trace) -> None:
-        global _job
         try:
             if self._pool is not None:
                 if error is None:

@@ -10,6 +10,7 @@ import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
@@ -17,6 +18,9 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from sequences.camera import Camera
+
+if TYPE_CHECKING:
+    from annotate.app import App
 
 #: True object box (full sides, m): object x, y (up), z (front).
 TRUE_EXTENTS = np.array([0.08, 0.12, 0.06])

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
-from test_tracking_render import mug_mesh, render_sequence
+from test_tracking_render import render_sequence
 
 from annotate.engines import engine_name, tracking_engine
 from annotate.estimator import EstimatorConfig, anchor_frames, refine_frame, track_sequence
