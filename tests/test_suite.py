@@ -105,6 +105,8 @@ def test_run_suite_end_to_end(tmp_path):
     assert truth["revolution_f5"] > 0.95 and "nonround_shape_f5" not in truth  # a procedural can is round
     assert truth["posed_f5"] > 0.8 and truth["shape_f5"] > 0.8  # a procedural can from its true poses
     assert tracked["rot_median_deg"] < 5 and tracked["centre_median_mm"] < 10 and tracked["ms_per_frame"] > 0
+    # the export is re-centred on the reconstruction's tight box: from the true poses, within the box's own error
+    assert truth["export_centre_median_mm"] < 3 and tracked["export_centre_median_mm"] < 10
     table = (out / "README.md").read_text()
     assert "| tiny-can | boxes4 |" in table and "| boxes4 | **all** | 1 |" in table
 
