@@ -13,7 +13,8 @@ rest, and only at the heights where the observed surface is round:
 4. per slice, the spread of the outer radii (1.4826 times their median absolute deviation: robust to the odd
    bin a remnant pushes out): the slice is round when it is at most ``tolerance`` (default
    ROUND_TOLERANCE_VOXELS voxels) or when too few bins hold data to tell (MIN_BINS): then the prior stands;
-   the verdicts are then smoothed over VERDICT_SLICES slices (a cap's slice makes no wall to judge);
+   the verdicts are then smoothed over VERDICT_HEIGHT of height (a cap's slice makes no wall to judge, and pose
+   errors of a degree and a millimetre make runs of single slices look out of round);
 5. the fill: an unobserved voxel of a round slice is carved when its ring (the voxels of that height at the
    same radius about the axis, to half a voxel) has OBSERVED_CARVED_SHARE of its observed voxels carved, those
    counted as at least OBSERVED_FLOOR of the ring (a glimpse through a can's opened lid is no evidence for the
@@ -39,8 +40,10 @@ MIN_BINS = 8
 #: Largest spread (voxels) of a round slice's outer radii: a voxelised circle's outer radii scatter by about half a
 #: voxel, and pose errors add about as much.
 ROUND_TOLERANCE_VOXELS = 1.25
-#: Slices whose majority decides each slice's verdict.
-VERDICT_SLICES = 5
+#: Height (metres) whose slices' majority decides each slice's verdict: a shape is round or not over a stretch of its
+#: height. Pose errors of a degree and a millimetre spread a round bottle's outer radii past the tolerance in runs of up
+#: to a dozen 2 mm slices.
+VERDICT_HEIGHT = 0.05
 
 
 @dataclass
@@ -132,9 +135,10 @@ def fit_revolution(surface: np.ndarray, grid: VoxelGrid, tolerance_voxels: float
         bins = np.bincount(s, minlength=ny)
         residual = _robust_spread(radius, s, ny)
     round_ = (bins < MIN_BINS) | (residual <= tolerance_voxels * grid.voxel_size)
-    # a shape is round or not over a stretch of its height: a lone slice (a cap, whose measured voxels lie flat and
-    # make no wall) takes the verdict of most of the VERDICT_SLICES slices about it
-    round_ = ndimage.median_filter(round_.astype(np.uint8), size=VERDICT_SLICES, mode="nearest").astype(bool)
+    # a shape is round or not over a stretch of its height: a slice (a cap, whose measured voxels lie flat and make no
+    # wall; a run that pose errors spread) takes the verdict of most of the slices within VERDICT_HEIGHT about it
+    slices = 2 * int(round(VERDICT_HEIGHT / grid.voxel_size / 2)) + 1
+    round_ = ndimage.median_filter(round_.astype(np.uint8), size=slices, mode="nearest").astype(bool)
     return RevolutionFit(centre, residual, bins, round_)
 
 
