@@ -62,14 +62,14 @@ def _profile_voxels(grid: VoxelGrid, radii) -> np.ndarray:
 
 def test_roundness_is_judged_over_a_stretch_of_height():
     """A cylinder whose outer radii scatter past the tolerance over 10 slices (2 cm: pose errors on a round bottle)
-    stays round there; an ellipse 2:3 over its whole height is round nowhere."""
+    stays round there; an ellipse 3:2 over its whole height is round nowhere."""
     grid = VoxelGrid(origin=np.array([-0.06, -0.07, -0.06]), voxel_size=0.002, shape=(61, 71, 61))
     scatter = 2 * ROUND_TOLERANCE_VOXELS * grid.voxel_size  # two quadrants out, two in
     jittered = lambda j, t: 0.04 + (scatter * np.sign(np.sin(2 * t)) if 30 <= j < 40 else 0.0)
     raw = fit_revolution(_profile_voxels(grid, jittered), grid)
     assert np.all(raw.residual[30:40] > ROUND_TOLERANCE_VOXELS * grid.voxel_size)  # each slice alone: out of round
     assert raw.round.all()
-    ellipse = lambda j, t: 0.02 * 0.04 / np.hypot(0.02 * np.cos(t), 0.04 * np.sin(t)) * 1.5
+    ellipse = lambda j, t: 0.045 * 0.03 / np.hypot(0.03 * np.cos(t), 0.045 * np.sin(t))  # semi-axes 45 and 30 mm
     assert not fit_revolution(_profile_voxels(grid, ellipse), grid).round.any()
 
 

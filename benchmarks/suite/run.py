@@ -166,7 +166,8 @@ def _cpu_seconds() -> float:
 
 COLUMNS = (  # (key, header, format)
     ("rot_median_deg", "rot med°", "{:.2f}"), ("rot_p90_deg", "p90°", "{:.2f}"), ("centre_median_mm", "ctr mm", "{:.1f}"),
-    ("export_centre_median_mm", "export ctr mm", "{:.1f}"), ("flagged_share", "flagged", "{:.0%}"), ("unflagged_over_5deg", ">5° unfl.", "{:d}"), ("posed_f5", "posed F5", "{:.3f}"),
+    ("export_centre_median_mm", "export ctr mm", "{:.1f}"), ("flagged_share", "flagged", "{:.0%}"), ("unflagged_over_5deg", ">5° unfl.", "{:d}"),
+    ("posed_f5", "posed F5", "{:.3f}"),
     ("shape_f5", "shape F5", "{:.3f}"), ("observed_precision5", "obs P5", "{:.3f}"), ("observed_recall5", "obs R5", "{:.3f}"),
     ("extents_error_mm", "ext mm", "{:.1f}"), ("measured_face_error_mm", "meas. face mm", "{:.1f}"), ("observed_share_gap_pp", "share gap pp", "{:.0f}"),
     ("reconstruct_s_per_100", "rec. s/100 f", "{:.1f}"), ("ms_per_frame", "ms/f", "{:.0f}"),
