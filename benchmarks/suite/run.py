@@ -95,11 +95,10 @@ def reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Tru
     reported = None if recon.surface is None else recon.surface.shares["observed"]
     shape = shape_scores(recon.mesh, recon.poses, surface, truth.poses)
     measured = None if recon.surface is None else sorted(f for f, state in recon.surface.faces.items() if state in BOUNDED)
-    exported = [f for f in recon.poses if f in truth.poses]
+    exported = any(f in truth.poses for f in recon.poses)
     return {
         # the export's poses are re-centred on the reconstruction's tight box: the centre a user of the ground truth gets
-        "export_centre_median_mm": float(np.median([1000.0 * np.linalg.norm(recon.poses[f][:3, 3] - truth.poses[f][:3, 3]) for f in exported]))
-        if exported else None,
+        "export_centre_median_mm": pose_scores(recon.poses, {}, truth.poses, truth.symmetry)["centre_median_mm"] if exported else None,
         "posed_f5": posed_fscore(recon.mesh, recon.poses, surface, truth.poses),
         **shape,
         "extents_error_mm": symmetric_extents_error(recon.extents, truth),
