@@ -141,3 +141,24 @@ def test_real_frames_reconstruction_scores_the_seen_part():
     row = reconstruct_real.run_object(video, "040_large_marker")
     assert row["support_plane"] is not None and abs(row["support_plane"]["normal"][2]) > 0.99
     assert row["observed_precision5"] > 0.95 and row["observed_recall5"] > 0.95 and not row["goals_missed"]
+
+
+def test_suite_coverage_reports_every_grasp(tmp_path):
+    """The generator's coverage per sequence, through the command: one figure per grasp (every sequence regrasps at
+    least once), shares within 0-1, a table and the JSON; a name not in the split is a one-line error."""
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump({
+        "frames": 50,
+        "settings": {"boxes4": {"boxes": 4, "degrees": 3.0, "metres": 0.005, "extents": 0.08}},
+        "sequences": [{"name": "tiny-mug", "split": "dev", "category": "mug", "shape": "procedural:mug", "coverage": "every_side",
+                       "texture": "plain", "seed": 5}],
+    }))
+    command = [sys.executable, str(REPO / "benchmarks" / "suite_coverage.py"), "--split", "dev", "--suite", str(path)]
+    result = subprocess.run([*command, "--out", str(tmp_path / "coverage.json")], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    row, = json.loads((tmp_path / "coverage.json").read_text())["rows"]
+    assert row["grasps"] >= 2 and len(row["hand_space_free"]) == len(row["contact_seen"]) == row["grasps"]
+    assert all(0.0 <= v <= 1.0 for v in [*row["hand_space_free"], *row["contact_seen"], row["surface_never_seen"]])
+    assert "| tiny-mug | every_side |" in result.stdout
+    refused = subprocess.run([*command, "--only", "no-such"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "not in the dev split: no-such" in refused.stderr
