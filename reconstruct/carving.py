@@ -172,6 +172,13 @@ def inside_box(grid: "VoxelGrid", extents) -> np.ndarray:
     return axes[0][:, None, None] & axes[1][None, :, None] & axes[2][None, None, :]
 
 
+def bound_by_box(occupied: np.ndarray, behind: np.ndarray, grid: "VoxelGrid", extents) -> np.ndarray:
+    """``occupied`` without the voxels outside the box of full sides ``extents`` (centred on the origin) that no frame saw
+    just behind a measured surface (``behind`` == 0). Outside the box only a measurement makes a voxel object: space no
+    frame looked at, and space some frames saw free too few times to be carved, are not. (nx, ny, nz) arrays."""
+    return occupied & ~((behind == 0) & ~inside_box(grid, extents))
+
+
 def default_margin(extents: np.ndarray) -> np.ndarray:
     """Margin (metres, per side and axis) around the annotated box: covers box errors of ~15 %."""
     return np.maximum(0.01, 0.15 * np.asarray(extents, dtype=np.float64))

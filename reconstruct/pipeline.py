@@ -137,7 +137,7 @@ def _depth_frames(sequence: Sequence, ids: list[str], poses: dict[str, np.ndarra
 VOXEL_MARGIN = 0.5
 
 
-#: The annotated box bounds what no frame observed, grown by this share of its sides (a box placed a little small).
+#: The annotated box bounds what no frame saw inside the object, grown by this share of its sides (a box placed a little small).
 BOX_PRIOR_SLACK = 0.05
 
 
@@ -175,7 +175,7 @@ def reconstruct_sequence(
     ``voxel_size`` and ``margin`` (per side, around the annotated box) in metres; ``k`` votes threshold
     (default :func:`carving.choose_k`). For ``symmetry: y`` the solid of revolution fills in what no frame
     observed where the measured surface is round (:mod:`reconstruct.revolution`). ``box_prior``: space no
-    frame observed counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK). ``support_plane``: the
+    frame saw just behind a measured surface counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK). ``support_plane``: the
     plane a static object stands on, measured beside it in every frame, is not object (:mod:`reconstruct.support`). ``evidence_hull``
     (off by default, never for symmetry y): drop the unseen space no measured surface bounds
     (:mod:`reconstruct.evidence`). ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
@@ -236,10 +236,9 @@ def reconstruct_sequence(
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, behind)
     if behind is not None and box_prior:
-        # space no frame observed is object only inside the annotated box: the grid's margin (for boxes placed too
-        # small) would otherwise stay solid wherever no frame looked
-        unobserved = (result.free_count == 0) & (behind == 0)
-        occupied = occupied & ~(unobserved & ~carving.inside_box(grid, annotation.extents * (1 + BOX_PRIOR_SLACK)))
+        # space no frame saw inside the object is object only inside the annotated box: the grid's margin (for boxes
+        # placed too small) would otherwise stay solid wherever no frame looked, or looked too rarely to carve
+        occupied = carving.bound_by_box(occupied, behind, grid, annotation.extents * (1 + BOX_PRIOR_SLACK))
     timings["symmetry"] = time.perf_counter() - start
     solid = meshing.largest_component(occupied)
     fused = None
