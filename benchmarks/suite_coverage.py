@@ -14,7 +14,7 @@ grasps, and the table, can hide it too. sequences.synth.coverage measures it wit
 
 Read these beside the suite's truth rows (run_suite.py): a measured face off by centimetres where a grasp's hand
 space is below 1 is the capture's, not the reconstruction's. The scene is drawn as the generator draws it from the
-entry's seed (no image rendered); about 10-20 s a sequence.
+entry's seed (no image rendered); about 30 s a sequence on 2 cores.
 """
 
 from __future__ import annotations
