@@ -329,9 +329,9 @@ def annotate_like_a_person(page, root: Path, truth: Truth, url: str) -> dict:
     for _ in range(min(REVIEWED, flagged)):
         if person.interactions + 2 + 2 > BUDGET:
             break
+        previous = shown_frame(page)
         person.key("f")
-        time.sleep(0.5)
-        index = shown_frame(page)
+        index = _settled_frame(page, previous, -1, timeout=30.0)  # the next flagged frame, once the page shows it
         frame_id = ids[index]
         pose = load_annotation(document).frames[frame_id]
         rot = rotation_error(truth.poses[frame_id][:3, :3], pose.matrix[:3, :3], truth.symmetry)
@@ -374,13 +374,32 @@ def _go_to(person: Person, index: int) -> None:
     field_.press("Enter")
     field_.evaluate("e => e.blur()")
     person._did(f"type {index + 1} into the frame field")
+    start = shown = shown_frame(page)
     for _ in range(8):
-        time.sleep(0.5)
-        shown = shown_frame(page)
+        shown = _settled_frame(page, start, index)
         if shown == index:
             return
         person.key("n" if shown < index else "b")
+        start = shown
     raise RuntimeError(f"the page went to frame {shown_frame(page) + 1}, not {index + 1}")
+
+
+def _settled_frame(page, start: int, wanted: int, timeout: float = 60.0, still: float = 1.0) -> int:
+    """The frame the page shows (0-based) once it shows ``wanted``, or once it has left ``start`` and stayed on another
+    frame for ``still`` s (or after ``timeout`` s), as a person waits for the page before pressing again: a slow page
+    is no reason for another key."""
+    deadline = time.monotonic() + timeout
+    last, since = start, time.monotonic()
+    while time.monotonic() < deadline:
+        shown = shown_frame(page)
+        if shown == wanted:
+            return shown
+        if shown != last:
+            last, since = shown, time.monotonic()
+        elif shown != start and time.monotonic() - since >= still:
+            return shown
+        time.sleep(0.1)
+    return shown_frame(page)
 
 
 def shown_frame(page) -> int:
