@@ -374,7 +374,7 @@ def _go_to(person: Person, index: int) -> None:
     field_.press("Enter")
     field_.evaluate("e => e.blur()")
     person._did(f"type {index + 1} into the frame field")
-    start = shown = shown_frame(page)
+    start = shown_frame(page)
     for _ in range(8):
         shown = _settled_frame(page, start, index)
         if shown == index:

@@ -63,12 +63,10 @@ def main(argv: list[str] | None = None) -> int:
         print(markdown(data["split"], data["quick"], len({r["sequence"] for r in data["rows"]}), data["frames"], settings, data["rows"]))
         return 0
     suite = load_suite(args.suite)
-    entries = suite.split(args.split, args.quick)
-    if args.only:
-        unknown = sorted(set(args.only) - {e.name for e in entries})
-        if unknown:
-            parser.error(f"not in the {args.split} split{' quick subset' if args.quick else ''}: {', '.join(unknown)}")
-        entries = [e for e in entries if e.name in args.only]
+    try:
+        entries = suite.named(args.split, args.only, args.quick)
+    except ValueError as error:
+        parser.error(str(error))
     settings = [s for s in suite.settings if s.name == "boxes4"] if args.quick else suite.settings
     if args.settings:
         settings = [s for s in suite.settings if s.name in args.settings]

@@ -65,12 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="write the rows as JSON here too")
     args = parser.parse_args(argv)
     suite = load_suite(args.suite)
-    entries = suite.split(args.split)
-    if args.only:
-        unknown = sorted(set(args.only) - {e.name for e in entries})
-        if unknown:
-            parser.error(f"not in the {args.split} split: {', '.join(unknown)}")
-        entries = [e for e in entries if e.name in args.only]
+    try:
+        entries = suite.named(args.split, args.only)
+    except ValueError as error:
+        parser.error(str(error))
     rows = []
     for k, entry in enumerate(entries, start=1):
         rows.append(entry_coverage(entry, suite.frames, Path(args.shared)))

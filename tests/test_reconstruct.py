@@ -134,15 +134,20 @@ def test_block_decisions_give_the_votes_of_each_voxel_decided_alone():
     assert 0 < (free > 0).mean() < 1 and behind.sum() > 0
 
 
-def test_unbacked_voxels_seen_free_once_are_carved_and_backed_ones_kept():
-    # four frames from one camera. Left half (x < 0): a cavity that one frame sees into (depth 1.5 m)
-    # while the others see a nearer wall (0.95 m), so no frame sees it just behind a surface. Right
-    # half: an object surface at 0.998 m that three frames see and one outlier frame sees past.
+def _cavity_beside_a_surface():
+    """The camera, the grid and four frames from one camera 1 m from it: left half (x < 0) a cavity that one frame sees
+    into (depth 1.5 m) while the others see a nearer wall (0.95 m); right half a surface at 0.998 m that three frames
+    see and the same outlier frame sees past."""
     camera, grid, pose = _cube_one_metre_ahead()
     outlier = np.full((100, 100), 1.5, np.float32)
     seen = np.full((100, 100), 0.998, np.float32)
     seen[:, :50] = 0.95
-    frames = [("outlier", outlier, pose)] + [(f"b{i}", seen, pose) for i in range(3)]
+    return camera, grid, [("outlier", outlier, pose)] + [(f"b{i}", seen, pose) for i in range(3)]
+
+
+def test_unbacked_voxels_seen_free_once_are_carved_and_backed_ones_kept():
+    # no frame sees the cavity (x < 0) just behind a surface; three see the surface's layers (x > 0) so
+    camera, grid, frames = _cavity_beside_a_surface()
     x = grid.axis_coordinates(0)
     z = grid.axis_coordinates(2) + 1.0  # camera depth of each z layer
     band = (z >= 0.998) & (z <= 0.998 + 2 * carving.depth_sigma(0.998) + np.sqrt(3) * 0.001)  # just behind the surface
@@ -165,11 +170,7 @@ def test_unbacked_voxels_seen_free_once_are_carved_and_backed_ones_kept():
 def test_the_box_bounds_what_no_frame_saw_inside_even_where_some_frame_saw_it_free():
     # the scene above without the unbacked rule: k = 1 keeps every voxel seen free once. A box 4 mm wide in x leaves
     # 8 mm of the 20 mm grid outside on either side: there only the layers three frames saw just behind the surface stay
-    camera, grid, pose = _cube_one_metre_ahead()
-    outlier = np.full((100, 100), 1.5, np.float32)
-    seen = np.full((100, 100), 0.998, np.float32)
-    seen[:, :50] = 0.95
-    frames = [("outlier", outlier, pose)] + [(f"b{i}", seen, pose) for i in range(3)]
+    camera, grid, frames = _cavity_beside_a_surface()
     result = carving.carve(grid, frames, camera, k=1, veto=0.5, unbacked=None)
     assert result.free_count.min() >= 1  # every voxel seen free by the outlier: none is unobserved
     x = grid.axis_coordinates(0)

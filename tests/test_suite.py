@@ -82,15 +82,21 @@ def test_recipe_key_follows_every_option():
 
 
 @pytest.mark.slow
-def test_run_suite_end_to_end(tmp_path):
-    """A one-sequence suite through the command: generated, tracked in one setting, reconstructed, scored, tabled."""
+def _one_sequence_suite(tmp_path: Path, frames: int, sequence: dict) -> Path:
+    """A suite file of ``sequence`` alone at ``frames`` frames, with the boxes4 setting."""
     path = tmp_path / "suite.yaml"
     path.write_text(yaml.safe_dump({
-        "frames": 24,
+        "frames": frames,
         "settings": {"boxes4": {"boxes": 4, "degrees": 3.0, "metres": 0.005, "extents": 0.08}},
-        "sequences": [{"name": "tiny-can", "split": "dev", "category": "can", "shape": "procedural:can", "coverage": "every_side",
-                       "texture": "label", "seed": 5}],
+        "sequences": [sequence],
     }))
+    return path
+
+
+def test_run_suite_end_to_end(tmp_path):
+    """A one-sequence suite through the command: generated, tracked in one setting, reconstructed, scored, tabled."""
+    path = _one_sequence_suite(tmp_path, 24, {"name": "tiny-can", "split": "dev", "category": "can", "shape": "procedural:can",
+                                              "coverage": "every_side", "texture": "label", "seed": 5})
     out = tmp_path / "out"
     result = subprocess.run([sys.executable, str(REPO / "benchmarks" / "run_suite.py"), "--split", "dev", "--suite", str(path),
                              "--data", str(tmp_path / "data"), "--out", str(out), "--workers", "1"],
@@ -146,13 +152,8 @@ def test_real_frames_reconstruction_scores_the_seen_part():
 def test_suite_coverage_reports_every_grasp(tmp_path):
     """The generator's coverage per sequence, through the command: one figure per grasp (every sequence regrasps at
     least once), shares within 0-1, a table and the JSON; a name not in the split is a one-line error."""
-    path = tmp_path / "suite.yaml"
-    path.write_text(yaml.safe_dump({
-        "frames": 50,
-        "settings": {"boxes4": {"boxes": 4, "degrees": 3.0, "metres": 0.005, "extents": 0.08}},
-        "sequences": [{"name": "tiny-mug", "split": "dev", "category": "mug", "shape": "procedural:mug", "coverage": "every_side",
-                       "texture": "plain", "seed": 5}],
-    }))
+    path = _one_sequence_suite(tmp_path, 50, {"name": "tiny-mug", "split": "dev", "category": "mug", "shape": "procedural:mug",
+                                              "coverage": "every_side", "texture": "plain", "seed": 5})
     command = [sys.executable, str(REPO / "benchmarks" / "suite_coverage.py"), "--split", "dev", "--suite", str(path)]
     result = subprocess.run([*command, "--out", str(tmp_path / "coverage.json")], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]

@@ -68,6 +68,17 @@ class Suite:
             chosen = [e for e in chosen if e.name in wanted]
         return chosen
 
+    def named(self, split: str, names: list[str] | None, quick: bool = False) -> list[Entry]:
+        """The entries of :meth:`split` whose name is in ``names`` (all of them for None); ValueError names those not
+        in it."""
+        entries = self.split(split, quick)
+        if not names:
+            return entries
+        unknown = sorted(set(names) - {e.name for e in entries})
+        if unknown:
+            raise ValueError(f"not in the {split} split{' quick subset' if quick else ''}: {', '.join(unknown)}")
+        return [e for e in entries if e.name in names]
+
 
 def _entry(path: Path, raw) -> Entry:
     if not isinstance(raw, dict) or not {"name", "split", "category", "shape", "seed"} <= set(raw):
