@@ -56,13 +56,13 @@ def coverage(category: str, frames: int, seed: int) -> str:
     """One line of coverage figures for a sequence's scene (drawn as generate.build_scene draws it, not rendered)."""
     from sequences.synth.coverage import measure
     from sequences.synth.motion import GraspPlanner, grasp_schedule, hand_states, held_frames, object_trajectory, plan_grasps
-    from sequences.synth.scene import make_layout
+    from sequences.synth.scene import grasp_hand, make_layout
 
     obj = procedural_mesh(category, g._rng(seed, g.SHAPE))
     schedule = grasp_schedule(frames)
     trajectory = object_trajectory(frames, g._rng(seed, g.MOTION), held_frames(frames, schedule))
     layout = make_layout(trajectory.positions.mean(axis=0), g._rng(seed, g.LAYOUT))
-    grasps = plan_grasps(schedule, trajectory, GraspPlanner(obj, g._rng(seed, g.GRASPS)), layout.elbow)
+    grasps = plan_grasps(schedule, trajectory, GraspPlanner(obj, g._rng(seed, g.GRASPS), grasp_hand), layout.elbow)
     c = measure(obj, trajectory, hand_states(frames, grasps), layout)
     shares = lambda values: " ".join(f"{v:.2f}" for v in values)  # noqa: E731
     return (f"{category:7} seed {seed}: opening {c.opening_deg:5.1f} deg, bottom {c.bottom_deg:5.1f} deg; "

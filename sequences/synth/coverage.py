@@ -11,7 +11,7 @@ trajectory and hand (object frame = ShapeNet axes, camera frame = OpenCV, metres
   facing the camera within SEEN_INCIDENCE) in at least one held frame of *another* grasp;
 - the share of the whole surface that no frame shows unobstructed (first hit, facing within
   SEEN_INCIDENCE);
-- per grasp, the hand's space next to the surface (hand mesh vertices 2 MARGIN to CONTACT off the
+- per grasp, the hand's space next to the surface (hand mesh vertices motion.HAND_SPACE off the
   surface): the share of it seen free (in front of the first surface along the ray) in at least
   one frame where that grasp does not hold the object (what a carving needs to remove the hand).
 """
@@ -24,7 +24,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from .motion import HandState, Trajectory
+from .motion import HAND_SPACE, HandState, Trajectory
 from .scene import Layout, elbow_at, hand_parts, upper_arm_part
 
 #: Surface points this close to the hand (metres) count as covered by it.
@@ -87,7 +87,7 @@ def measure(mesh: trimesh.Trimesh, trajectory: Trajectory, hands: list[HandState
         # the palm, fingers and thumb only: the forearm's far end is not on the object
         # (a point closer than a few millimetres to the surface lies in the surface's own voxels: never "free")
         gap = closest.compute_distance(o3d.core.Tensor(vertices.astype(np.float32))).numpy()
-        near_hand = (gap > 2 * MARGIN) & (gap < CONTACT)
+        near_hand = (gap > HAND_SPACE[0]) & (gap < HAND_SPACE[1])
         hand_scene = o3d.t.geometry.RaycastingScene()
         hand_scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces_hand.astype(np.uint32)))
         answer = hand_scene.compute_closest_points(o3d.core.Tensor(surface.astype(np.float32)))

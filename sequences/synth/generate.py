@@ -30,7 +30,7 @@ from .options import GENERATOR_VERSION, CaptureOptions, check_arguments, check_c
 from .png16 import write_png16
 from .primitives import Part, vertex_normals
 from .render import Render, crop, projected_window, render
-from .scene import OBJECT, Layout, background_parts, elbow_at, hand_parts, make_layout, person_parts, upper_arm_part
+from .scene import OBJECT, Layout, background_parts, elbow_at, grasp_hand, hand_parts, make_layout, person_parts, upper_arm_part
 from .sensor import PROJECTOR, ObjectStyle, add_color_noise, depth_measurement, object_style, scene_albedo, shade
 from .shapes import load_mesh, procedural_mesh
 from .truth import TRUTH_DIR, write_mask, write_truth
@@ -113,7 +113,7 @@ def build_scene(obj: trimesh.Trimesh, frames: int, seed: int, camera: Camera, ca
     plan = capture_plan(capture.coverage, frames, np.asarray(obj.convex_hull.vertices), _rng(seed, MOTION), capture.keys, capture.turn_speed)
     trajectory = plan.trajectory
     layout = make_layout(trajectory.positions.mean(axis=0), _rng(seed, LAYOUT), plan.table)
-    grasps = plan_grasps(plan.schedule, trajectory, GraspPlanner(obj, _rng(seed, GRASPS)), layout.elbow, plan.resting)
+    grasps = plan_grasps(plan.schedule, trajectory, GraspPlanner(obj, _rng(seed, GRASPS), grasp_hand), layout.elbow, plan.resting)
     style = object_style(_rng(seed, STYLE), float(obj.extents[1]), capture.texture)
     vertices, faces = np.asarray(obj.vertices), np.asarray(obj.faces)
     still_parts = [*background_parts(layout), *person_parts(layout)]

@@ -12,14 +12,17 @@ regrasps). Its centre drifts smoothly 0.5-0.85 m in front of the camera.
 
 A hand holds the object by a grasp fixed in the object frame (palm on the surface, fingers wrapped
 on it), releases it, moves around it and grasps elsewhere (at least one regrasp per sequence).
-Each grasp is placed so that the space its hand fills next to the surface is seen free (in front
-of the object) in frames held by another grasp: the hand never hides for good what only its hold
-could show (:mod:`.coverage` measures it).
+Each grasp is placed so that the space its hand fills next to the surface (its mesh HAND_SPACE off
+the surface) is seen free, in front of the object and of the other grasps' hands, in frames held by
+another grasp or resting on a table: the hand never hides for good what only its hold could show.
+That is a requirement (all but HIDDEN_TOLERANCE of the space), not a preference: the grasps are
+planned in turn, then planned again against all the others' hands (:mod:`.coverage` measures it).
 Frames: camera OpenCV (x right, y down, z forward), metres; poses map object to camera.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,16 +30,24 @@ import open3d as o3d
 import trimesh
 from scipy.spatial.transform import Rotation, RotationSpline
 
+from .primitives import Part
+
 #: Frames per 90-degree key of the orientation path (about 5 degrees per frame).
 FRAMES_PER_KEY = 22
 #: Frames per grasp before the hand regrasps.
 FRAMES_PER_GRASP = 45
-#: Points of the palm's or a finger's axis this close to the surface (metres) are the hand's space next to it.
-COVER = 0.02
-#: How many of the best-scored contacts are wrapped and checked, and the weight of the share of their
+#: The hand's space next to the surface: points of the hand's mesh this far off it (metres). Nearer, a point lies in
+#: the surface's own voxels and is never "free"; farther, it is no imprint a carving could keep.
+HAND_SPACE = (0.004, 0.012)
+#: How many of the best-scored contacts are wrapped and checked at a time, and the weight of the share of their
 #: hand's space never seen free in a frame of another grasp.
 CANDIDATES = 24
 HIDDEN_WEIGHT = 8.0
+#: The share of a grasp's hand space that may stay unseen free: a grasp above it is taken only where no contact
+#: of the object does better (a regrasp exists so that a reconstruction can see where the hand was).
+HIDDEN_TOLERANCE = 0.02
+#: At most this many points of a hand's space are checked (evenly strided).
+SPACE_POINTS = 300
 #: Radius (metres) of the palm's patch of surface, and the angle (degrees) within which a surface faces the camera.
 PATCH = 0.025
 SHOWN_INCIDENCE = 70.0
@@ -212,12 +223,24 @@ def open_hand() -> np.ndarray:
     return np.concatenate([fingers, thumb[None]], axis=0)
 
 
+@dataclass
+class View:
+    """Frames that show the object while a grasp is elsewhere: the object's rotations (M, 3, 3) and positions (M, 3)
+    in the camera frame, and the hand that holds it then (object frame; None: no hand, or not yet planned)."""
+
+    rotations: np.ndarray
+    positions: np.ndarray
+    hand: Part | None = None
+
+
 class GraspPlanner:
     """Chooses grasp points on the object's surface and wraps the fingers on it (closest-point queries)."""
 
-    def __init__(self, mesh: trimesh.Trimesh, rng: np.random.Generator) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, rng: np.random.Generator, hand: Callable[[Grasp], Part]) -> None:
+        """``hand(grasp)``: the mesh of the hand holding ``grasp`` (palm, fingers, thumb), object frame."""
         self.mesh = mesh
         self.rng = rng
+        self.hand = hand
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)), o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
         # area-weighted surface samples with their face normals (seeded, so grasps are deterministic)
@@ -250,14 +273,14 @@ class GraspPlanner:
         return answer["points"].numpy().astype(np.float64), answer["primitive_normals"].numpy().astype(np.float64)
 
     def plan(self, rotations: np.ndarray, positions: np.ndarray, elbow: np.ndarray, avoid: list[np.ndarray], first: int, last: int,
-             elsewhere: tuple[np.ndarray, np.ndarray] | None = None) -> Grasp:
+             elsewhere: list[View] | None = None) -> Grasp:
         """A grasp held over frames first..last, given the object's rotations (K, 3, 3) and positions (K, 3) over them.
 
         The palm goes where, through the whole hold, the surface faces sideways toward the elbow
         and never the camera (so the forearm reaches it from behind or the side and the fingers
         wrap over the front), away from earlier contacts in ``avoid``, and where the surface faces
-        the camera in some frame held by another grasp (``elsewhere``: the object's rotations
-        (M, 3, 3) and positions (M, 3) in those frames), so what this hand covers is shown free then.
+        the camera in some frame held by another grasp (``elsewhere``: those frames, with the other
+        grasp's hand where it is known), so what this hand covers is shown free then.
         """
         middle = len(rotations) // 2
         to_elbow = _unit(elbow - positions)  # (K, 3)
@@ -281,31 +304,63 @@ class GraspPlanner:
         for previous in avoid:  # a regrasp takes the object elsewhere, whatever else the score says
             near = np.linalg.norm(self.samples - previous, axis=1) < 0.45 * self.diagonal
             score = score - 20.0 * near
-        if elsewhere is None or not len(elsewhere[0]):
-            pick = int(np.argmax(score))
+        order = np.argsort(-score)
+        if not elsewhere:
+            pick = int(order[0])
             return self._grasp(self.samples[pick], normals[pick], fingers[pick], first, last)
-        # of the best candidates, the one whose hand leaves the least of the space it fills next to the surface
-        # never seen free (in front of the object) in a frame held by another grasp: a regrasp must take the
-        # hand off what only those frames can show, or a carving keeps the hand's imprint
-        # and whose palm patch faces the camera, unhidden by the object, in such a frame
-        shown = self.shown(*elsewhere)
-        best, best_score = None, -np.inf
-        for pick in np.argsort(-score)[:CANDIDATES]:  # a few closest-point queries and ray casts each
-            grasp = self._grasp(self.samples[pick], normals[pick], fingers[pick], first, last)
-            hidden = 1.0 - float(self.seen_free(self.hand_space(grasp), *elsewhere).mean())
-            patch = (np.linalg.norm(self.samples - self.samples[pick], axis=1) < PATCH) & (normals @ normals[pick] > 0.5)
-            total = score[pick] - HIDDEN_WEIGHT * (hidden + 1.0 - shown[patch].mean())
-            if total > best_score:
-                best, best_score = grasp, total
-        return best
+        # the best-scored candidate whose hand leaves at most HIDDEN_TOLERANCE of the space it fills next to the
+        # surface never seen free (in front of the object and the other hands) in a frame held by another grasp, and
+        # whose palm patch faces the camera, unhidden by the object, in such a frame: a regrasp must take the hand off
+        # what only those frames can show, or a carving keeps the hand's imprint. Failing that, the least hidden.
+        shown = self.shown(np.concatenate([v.rotations for v in elsewhere]), np.concatenate([v.positions for v in elsewhere]))
+        scenes = self._scenes(elsewhere)
+        kept, kept_total, least, least_key = None, -np.inf, None, (np.inf, 0.0)
+        for start in range(0, len(order), CANDIDATES):
+            for pick in order[start : start + CANDIDATES]:  # a few closest-point queries and ray casts each
+                grasp = self._grasp(self.samples[pick], normals[pick], fingers[pick], first, last)
+                hidden = self._hidden(grasp, elsewhere, scenes)
+                patch = (np.linalg.norm(self.samples - self.samples[pick], axis=1) < PATCH) & (normals @ normals[pick] > 0.5)
+                total = score[pick] - HIDDEN_WEIGHT * (hidden + 1.0 - shown[patch].mean())
+                if hidden <= HIDDEN_TOLERANCE and total > kept_total:
+                    kept, kept_total = grasp, total
+                if (hidden, -total) < least_key:
+                    least, least_key = grasp, (hidden, -total)
+            if kept is not None:
+                return kept
+        return least
+
+    def hidden(self, grasp: Grasp, elsewhere: list[View]) -> float:
+        """The share of ``grasp``'s hand space that no frame of ``elsewhere`` sees free."""
+        return self._hidden(grasp, elsewhere, self._scenes(elsewhere))
+
+    def _scenes(self, elsewhere: list[View]) -> list[o3d.t.geometry.RaycastingScene]:
+        """A ray-casting scene per view group: the object, and the other grasp's hand where it is known."""
+        scenes = []
+        for v in elsewhere:  # a few groups
+            if v.hand is None:
+                scenes.append(self.scene)
+                continue
+            scene = o3d.t.geometry.RaycastingScene()
+            for vertices, faces in ((self.mesh.vertices, self.mesh.faces), (v.hand.vertices, v.hand.faces)):
+                scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32)))
+            scenes.append(scene)
+        return scenes
+
+    def _hidden(self, grasp: Grasp, elsewhere: list[View], scenes: list[o3d.t.geometry.RaycastingScene]) -> float:
+        space = self.hand_space(grasp)
+        if not len(space):
+            return 0.0
+        free = np.zeros(len(space), bool)
+        for v, scene in zip(elsewhere, scenes):
+            free |= self.seen_free(space, v.rotations, v.positions, scene)
+        return 1.0 - float(free.mean())
 
     def hand_space(self, grasp: Grasp) -> np.ndarray:
-        """(P, 3) points on the axes of the grasp's palm, fingers and thumb within COVER of the surface, object frame."""
-        palm = np.stack(np.meshgrid([-0.8, 0.0, 0.8], [-0.8, 0.0, 0.8], [0.0]), -1).reshape(-1, 3) * PALM
-        steps = np.linspace(0, 1, 4)[None, None, :, None]
-        segments = grasp.wrapped[:, :-1, None] + steps * (grasp.wrapped[:, 1:, None] - grasp.wrapped[:, :-1, None])
-        hand = np.concatenate([palm, segments.reshape(-1, 3)]) @ grasp.hand_in_object[:3, :3].T + grasp.hand_in_object[:3, 3]
-        return hand[self.scene.compute_distance(o3d.core.Tensor(hand.astype(np.float32))).numpy() < COVER]
+        """(P, 3) points of the grasp's hand mesh HAND_SPACE off the surface (at most about SPACE_POINTS), object frame."""
+        vertices = self.hand(grasp).vertices
+        gap = self.scene.compute_distance(o3d.core.Tensor(vertices.astype(np.float32))).numpy()
+        space = vertices[(gap > HAND_SPACE[0]) & (gap < HAND_SPACE[1])]
+        return space[:: max(1, len(space) // SPACE_POINTS)]
 
     def shown(self, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """(N,) bool: whether some frame shows each surface sample: facing the camera within SHOWN_INCIDENCE, unhidden by the object."""
@@ -318,14 +373,18 @@ class GraspPlanner:
         t = self.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
         return (facing & (t > length)).any(axis=0)
 
-    def seen_free(self, points: np.ndarray, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    def seen_free(self, points: np.ndarray, rotations: np.ndarray, positions: np.ndarray,
+                  scene: o3d.t.geometry.RaycastingScene | None = None) -> np.ndarray:
         """(P,) bool: whether some frame (object rotations (M, 3, 3), positions (M, 3)) sees each point (object frame)
-        in front of the object: the ray from the camera through it meets the object only beyond it (or never)."""
+        in front of the object (or of ``scene``, in the object frame): the ray from the camera through it meets the
+        surface only beyond it (or never)."""
+        if not len(rotations):
+            return np.zeros(len(points), bool)
         centres = -np.einsum("mji,mj->mi", rotations, positions)  # camera centres in the object frame (M, 3)
         ray = points[None] - centres[:, None]  # (M, P, 3)
         length = np.linalg.norm(ray, axis=2)
         rays = np.concatenate([np.broadcast_to(centres[:, None], ray.shape), ray / length[..., None]], axis=2).reshape(-1, 6)
-        t = self.scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
+        t = (scene or self.scene).cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
         return (t > length + 0.002).any(axis=0)
 
     def _grasp(self, contact: np.ndarray, normal: np.ndarray, fingers: np.ndarray, first: int, last: int) -> Grasp:
@@ -427,17 +486,36 @@ def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner
     """A grasp for each (first, last) frame range of ``schedule``, each elsewhere than the one before.
 
     ``resting`` (frames,) bool: frames where the object rests with no hand on it; they show it free too.
+    Each grasp is planned against the hands of the grasps before it; then every grasp whose hand space the
+    other grasps' hands leave hidden beyond HIDDEN_TOLERANCE is planned again against all of them (twice over).
     """
-    grasps: list[Grasp] = []
-    held = held_frames(len(trajectory), schedule)
+    holder = np.full(len(trajectory), -1)
+    for k, (first, last) in enumerate(schedule):  # a few grasps
+        holder[first : last + 1] = k
+    shows = holder >= 0
     if resting is not None:
-        held |= resting
-    for first, last in schedule:
+        shows |= resting
+
+    def elsewhere(k: int, grasps: list[Grasp]) -> list[View]:
+        views = []
+        for j in range(-1, len(schedule)):  # the frames of each other grasp, and those with none
+            frames = shows & (holder == j) if j >= 0 else shows & (holder < 0)
+            if j != k and frames.any():
+                views.append(View(trajectory.rotations[frames], trajectory.positions[frames], planner.hand(grasps[j]) if 0 <= j < len(grasps) else None))
+        return views
+
+    def plan(k: int, grasps: list[Grasp], avoid: list[np.ndarray]) -> Grasp:
+        first, last = schedule[k]
         hold = slice(first, last + 1)
-        others = held.copy()
-        others[hold] = False
-        grasps.append(planner.plan(trajectory.rotations[hold], trajectory.positions[hold], elbow, [g.contact for g in grasps], first, last,
-                                   (trajectory.rotations[others], trajectory.positions[others])))
+        return planner.plan(trajectory.rotations[hold], trajectory.positions[hold], elbow, avoid, first, last, elsewhere(k, grasps))
+
+    grasps: list[Grasp] = []
+    for k in range(len(schedule)):
+        grasps.append(plan(k, grasps, [g.contact for g in grasps]))
+    for _ in range(2):
+        for k in range(len(schedule)):
+            if planner.hidden(grasps[k], elsewhere(k, grasps)) > HIDDEN_TOLERANCE:
+                grasps[k] = plan(k, grasps, [g.contact for j, g in enumerate(grasps) if j != k])
     return grasps
 
 

@@ -18,7 +18,7 @@ from ..axes import MESH_AXES
 from ..errors import InputError
 
 #: Bumped whenever the generator's output changes, so cached sample sequences are regenerated.
-GENERATOR_VERSION = 9
+GENERATOR_VERSION = 10
 #: Procedural shapes and their category: each category's plain shape, and variants that keep the category's
 #: label (bottles and bowls say ``symmetry: y``) but are no solids of revolution, and mugs with other handles.
 PROCEDURAL_SHAPES = {

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .motion import FINGER_RADIUS, FOREARM_RADIUS, PALM, THUMB_RADIUS, WRIST, HandState
+from .motion import FINGER_RADIUS, FOREARM_RADIUS, PALM, THUMB_RADIUS, WRIST, Grasp, HandState
 from .primitives import Part, capsules, concatenate, ellipsoids, quad
 
 # Scene labels (per triangle; 0 = nothing hit)
@@ -82,8 +82,9 @@ def elbow_at(layout: Layout, object_position: np.ndarray) -> np.ndarray:
     return layout.elbow + 0.5 * (np.asarray(object_position) - layout.mean_position)
 
 
-def hand_parts(state: HandState, object_pose: np.ndarray, elbow: np.ndarray) -> Part:
-    """Palm (ellipsoid), fingers and thumb (capsules) and forearm (capsule to the elbow), camera frame."""
+def hand_parts(state: HandState, object_pose: np.ndarray, elbow: np.ndarray | None) -> Part:
+    """Palm (ellipsoid), fingers and thumb (capsules) and forearm (capsule to the elbow; none where ``elbow`` is None),
+    in the frame ``object_pose`` maps the object frame to (the camera frame)."""
     T = object_pose @ state.hand_in_object
     R, t = T[:3, :3], T[:3, 3]
     chains = state.chains @ R.T + t  # (5, 4, 3)
@@ -93,13 +94,21 @@ def hand_parts(state: HandState, object_pose: np.ndarray, elbow: np.ndarray) -> 
     radii = radii * np.tile([1.0, 0.93, 0.86], 5)  # fingers taper
     wrist = R @ WRIST + t
     # the forearm ends a little short of the elbow joint (the upper arm, in the sleeve, takes over)
-    starts = np.vstack([starts, wrist, chains[4, 0]])
-    ends = np.vstack([ends, elbow, wrist])
-    radii = np.concatenate([radii, [FOREARM_RADIUS, THUMB_RADIUS * 1.3]])
+    if elbow is None:
+        starts, ends, radii = np.vstack([starts, chains[4, 0]]), np.vstack([ends, wrist]), np.append(radii, THUMB_RADIUS * 1.3)
+    else:
+        starts = np.vstack([starts, wrist, chains[4, 0]])
+        ends = np.vstack([ends, elbow, wrist])
+        radii = np.concatenate([radii, [FOREARM_RADIUS, THUMB_RADIUS * 1.3]])
     fingers = capsules(starts, ends, radii, HAND)
     palm = ellipsoids(t[None], (R * PALM[None, :])[None], HAND)
     vertices, faces, normals, _ = concatenate([fingers, palm])
     return Part(vertices, faces, normals, HAND)
+
+
+def grasp_hand(grasp: Grasp) -> Part:
+    """The hand holding ``grasp``: palm, fingers and thumb (no forearm), object frame."""
+    return hand_parts(HandState(grasp.hand_in_object, grasp.wrapped, True, 0), np.eye(4), None)
 
 
 def person_parts(layout: Layout) -> list[Part]:
