@@ -63,7 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fresh", action="store_true", help="rerun cached results")
     args = parser.parse_args(argv)
     suite = load_suite()
-    entries = [e for e in suite.split(args.split, False) if not args.only or e.name in args.only]
+    try:
+        entries = suite.named(args.split, args.only)
+    except ValueError as error:
+        parser.error(str(error))
     cache = REPO / "build" / "engines"
     cache.mkdir(parents=True, exist_ok=True)
     rows = []

@@ -180,3 +180,10 @@ def test_suite_coverage_reports_every_grasp(tmp_path):
     assert "| tiny-mug | every_side |" in result.stdout
     refused = subprocess.run([*command, "--only", "no-such"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and "not in the dev split: no-such" in refused.stderr
+
+
+def test_compare_engines_refuses_a_name_not_in_the_split():
+    """The engines' A/B runs what it is asked or nothing: a name not in the split is a one-line error (exit 2)."""
+    command = [sys.executable, str(REPO / "benchmarks" / "compare_engines.py"), "--split", "heldout", "--only", "dev-camera"]
+    refused = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and "not in the heldout split: dev-camera" in refused.stderr

@@ -384,7 +384,7 @@ class GraspPlanner:
         ray = points[None] - centres[:, None]  # (M, P, 3)
         length = np.linalg.norm(ray, axis=2)
         rays = np.concatenate([np.broadcast_to(centres[:, None], ray.shape), ray / length[..., None]], axis=2).reshape(-1, 6)
-        t = (scene or self.scene).cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
+        t = (self.scene if scene is None else scene).cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy().reshape(length.shape)
         return (t > length + 0.002).any(axis=0)
 
     def _grasp(self, contact: np.ndarray, normal: np.ndarray, fingers: np.ndarray, first: int, last: int) -> Grasp:
