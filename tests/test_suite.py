@@ -81,7 +81,6 @@ def test_recipe_key_follows_every_option():
     assert len(keys) == 4 and resolve(base, 40).key() != resolve(base, 41).key()
 
 
-@pytest.mark.slow
 def _one_sequence_suite(tmp_path: Path, frames: int, sequence: dict) -> Path:
     """A suite file of ``sequence`` alone at ``frames`` frames, with the boxes4 setting."""
     path = tmp_path / "suite.yaml"
@@ -93,6 +92,7 @@ def _one_sequence_suite(tmp_path: Path, frames: int, sequence: dict) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_run_suite_end_to_end(tmp_path):
     """A one-sequence suite through the command: generated, tracked in one setting, reconstructed, scored, tabled."""
     path = _one_sequence_suite(tmp_path, 24, {"name": "tiny-can", "split": "dev", "category": "can", "shape": "procedural:can",

@@ -499,23 +499,24 @@ def plan_grasps(schedule: list[tuple[int, int]], trajectory: Trajectory, planner
     def elsewhere(k: int, grasps: list[Grasp]) -> list[View]:
         views = []
         for j in range(-1, len(schedule)):  # the frames of each other grasp, and those with none
-            frames = shows & (holder == j) if j >= 0 else shows & (holder < 0)
+            frames = shows & (holder == j)
             if j != k and frames.any():
                 views.append(View(trajectory.rotations[frames], trajectory.positions[frames], planner.hand(grasps[j]) if 0 <= j < len(grasps) else None))
         return views
 
-    def plan(k: int, grasps: list[Grasp], avoid: list[np.ndarray]) -> Grasp:
+    def plan(k: int, views: list[View], avoid: list[np.ndarray]) -> Grasp:
         first, last = schedule[k]
         hold = slice(first, last + 1)
-        return planner.plan(trajectory.rotations[hold], trajectory.positions[hold], elbow, avoid, first, last, elsewhere(k, grasps))
+        return planner.plan(trajectory.rotations[hold], trajectory.positions[hold], elbow, avoid, first, last, views)
 
     grasps: list[Grasp] = []
     for k in range(len(schedule)):
-        grasps.append(plan(k, grasps, [g.contact for g in grasps]))
+        grasps.append(plan(k, elsewhere(k, grasps), [g.contact for g in grasps]))
     for _ in range(2):
         for k in range(len(schedule)):
-            if planner.hidden(grasps[k], elsewhere(k, grasps)) > HIDDEN_TOLERANCE:
-                grasps[k] = plan(k, grasps, [g.contact for j, g in enumerate(grasps) if j != k])
+            views = elsewhere(k, grasps)
+            if planner.hidden(grasps[k], views) > HIDDEN_TOLERANCE:
+                grasps[k] = plan(k, views, [g.contact for j, g in enumerate(grasps) if j != k])
     return grasps
 
 
