@@ -68,7 +68,10 @@ DEFAULT_CARVED_SHARE = 0.3
 #: see free, and still fills the sides of a can seen from one direction only
 #: (tests/test_reconstruct.py::test_symmetry_fills_the_sides_never_seen).
 OBSERVED_CARVED_SHARE = 0.6
-OBSERVED_FLOOR = 0.1
+#: So a ring is carved only where at least OBSERVED_CARVED_SHARE * OBSERVED_FLOOR (15 %) of it was seen free: a
+#: pocket off the axis, open on a tenth of its rings, would otherwise carve the rest of them, hidden inside the
+#: solid, into a void no camera could see (tests/test_reconstruct_seen.py, the pocket test).
+OBSERVED_FLOOR = 0.25
 #: Count projector shadows as free up to the depth their geometry proves (shadow_free_depth): a palm
 #: behind a mug's own shadow is otherwise never carved and stretches the box by centimetres. ~9 ms a frame.
 DEFAULT_SHADOWS = True

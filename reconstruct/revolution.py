@@ -17,8 +17,9 @@ rest, and only at the heights where the observed surface is round:
    errors of a degree and a millimetre make runs of single slices look out of round);
 5. the fill: an unobserved voxel of a round slice is carved when its ring (the voxels of that height at the
    same radius about the axis, to half a voxel) has OBSERVED_CARVED_SHARE of its observed voxels carved, those
-   counted as at least OBSERVED_FLOOR of the ring (a glimpse through a can's opened lid is no evidence for the
-   rest of its inside); observed voxels keep the carving's verdict, and nothing is ever added.
+   counted as at least OBSERVED_FLOOR of the ring (a glimpse into a pocket off the axis, or through a can's opened
+   lid, is no evidence for the rest of the ring, hidden inside the solid); observed voxels keep the carving's
+   verdict, and nothing is ever added.
 
 A square bowl, a flask-shaped bottle or a rectangular can keep their carved shape; a round bottle whose
 back no frame saw gets it from its front.

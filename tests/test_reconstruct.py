@@ -274,12 +274,17 @@ def test_revolve_counts_the_share_of_the_observed_ring():
     radius = (np.hypot(X, Z))[:, None, :] * np.ones(grid.shape)
     angle = np.arctan2(Z, X)[:, None, :] * np.ones(grid.shape)
     full_rings = (radius > 0.0165) & (radius < 0.019)
-    # seen from an eighth of the azimuths only, outside carved there: the share of the observed arc carves the ring
-    arc = (angle > 0) & (angle < np.pi / 4)
+    # seen from a third of the azimuths only, outside carved there: the share of the observed arc carves the ring
+    arc = (angle > 0) & (angle < 2 * np.pi / 3)
     occupied = ~((radius > 0.015) & arc)
     assert carving.revolve_occupancy(occupied, grid, 0.5)[full_rings].all()  # share of the whole ring: kept
     revolved = carving.revolve_occupancy(occupied, grid, 0.5, observed=arc | (radius <= 0.015))
     assert not revolved[full_rings].any() and revolved[radius < 0.0145].all()
+    # a sixteenth of the ring seen carved is below the share of OBSERVED_FLOOR: a glimpse says nothing of the rest, kept
+    glimpse = (angle > 0) & (angle < np.pi / 8)
+    assert 1 / 16 < 0.5 * carving.OBSERVED_FLOOR
+    revolved = carving.revolve_occupancy(~((radius > 0.015) & glimpse), grid, 0.5, observed=glimpse | (radius <= 0.015))
+    assert revolved[full_rings & ~glimpse].all()
     # everything observed; the rim (13.5-15.5 mm: whole rings) carved on 40% of the ring by frames with pose
     # errors: kept at a share of 0.5
     rim = (radius >= 0.0135) & (radius < 0.0155)

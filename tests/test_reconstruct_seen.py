@@ -16,7 +16,7 @@ from test_reconstruct_scenes import cup_mesh, fscore, write_scene, y_cylinder
 
 from reconstruct.carving import VoxelGrid
 from reconstruct.pipeline import reconstruct_sequence
-from reconstruct.revolution import ROUND_TOLERANCE_VOXELS, fit_revolution
+from reconstruct.revolution import ROUND_TOLERANCE_VOXELS, fit_revolution, revolved_fill
 from reconstruct.seen import INFERRED, OBSERVED, PIXEL_STRIDE, UNSEEN
 from sequences.annotation import load_annotation
 from sequences.reader import open_sequence
@@ -71,6 +71,24 @@ def test_roundness_is_judged_over_a_stretch_of_height():
     assert raw.round.all()
     ellipse = lambda j, t: 0.045 * 0.03 / np.hypot(0.03 * np.cos(t), 0.045 * np.sin(t))  # semi-axes 45 and 30 mm
     assert not fit_revolution(_profile_voxels(grid, ellipse), grid).round.any()
+
+
+def test_a_pocket_off_the_axis_carves_no_hidden_ring_inside_the_solid():
+    """A round can (radius 30 mm) with a pocket off its axis (radius 5 mm at 18 mm from it, 20 mm deep from the top):
+    the pocket's rings are carved on at most a tenth of their voxels, the rest of each ring lies inside the solid where
+    no frame looks. The fill must not carve those rings into a hidden annular void: a glimpse is no evidence for the
+    whole ring. Truth: the occupancy, voxel by voxel."""
+    grid = VoxelGrid(origin=np.array([-0.04, -0.04, -0.04]), voxel_size=0.002, shape=(41, 41, 41))
+    x, y, z = (grid.axis_coordinates(a).reshape([-1 if b == a else 1 for b in range(3)]) for a in range(3))
+    body = (np.hypot(x, z) <= 0.03) & (np.abs(y) <= 0.03)
+    pocket = (np.hypot(x - 0.018, z) <= 0.005) & (y > 0.01)
+    occupied = body & ~pocket
+    from scipy import ndimage
+    behind = occupied & ndimage.binary_dilation(~occupied, iterations=2)  # the band frames saw just behind the surface
+    observed = ~occupied | behind
+    fit = fit_revolution(behind, grid)
+    assert fit.round.all()  # the outer profile is round at every height
+    assert np.array_equal(revolved_fill(occupied, observed, grid, fit), occupied)  # nothing carved, nothing added
 
 
 def test_a_round_can_seen_from_one_side_gets_its_back_from_symmetry(tmp_path):
