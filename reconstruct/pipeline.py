@@ -17,6 +17,7 @@ import trimesh
 
 from sequences.annotation import Annotation, annotation_path
 from sequences.errors import InputError
+from sequences import timing
 from sequences.reader import Sequence
 
 from . import SURFACE, SURFACES, carving, evidence, meshing, support, tsdf  # noqa: F401 (SURFACE, SURFACES: defined there, light to import)
@@ -194,6 +195,8 @@ def reconstruct_sequence(
     timings: dict[str, float] = {}
     posed = select_frames(sequence, annotation, frames, source)
     poses = {f: annotation.frames[f].matrix for f in posed}  # every selected frame gets its pose in the export
+    # the document's poses are at the colour instants; each depth image is posed at its own (sequences.timing)
+    at_depth = timing.at_depth_time(sequence, poses)
     ids = carving_frames(annotation, posed, include_flagged or frames is not None)  # a pose flagged for review may carve the object away
     say = progress or (lambda stage, done, total: None)
 
@@ -205,14 +208,14 @@ def reconstruct_sequence(
     hull = veto is not None and bool(evidence_hull) and annotation.symmetry != "y"
     if voxel_margin is None:
         voxel_margin = VOXEL_MARGIN
-    result = carving.carve(grid, _depth_frames(sequence, ids, poses, ahead), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked, ahead=ahead)
+    result = carving.carve(grid, _depth_frames(sequence, ids, at_depth, ahead), sequence.camera, k_votes, tol_sigmas, voxel_margin, silhouette_px, progress=lambda done: say("carve", done, len(ids)), veto=veto, settle=settle, shadows=shadows, unbacked=unbacked, ahead=ahead)
     timings["carve"] = time.perf_counter() - start
 
     start = time.perf_counter()
     occupied, behind = result.occupied, result.behind_count
     plane = None
     if support_plane:  # a table the object stands on is no part of it (a hand-held object finds none)
-        plane = support.find_support(((T, depth) for _, depth, T in _depth_frames(sequence, ids[:: support.FRAME_STEP], poses, ahead)),
+        plane = support.find_support(((T, depth) for _, depth, T in _depth_frames(sequence, ids[:: support.FRAME_STEP], at_depth, ahead)),
                                      sequence.camera, grid, annotation.extents)
     if plane is not None:
         cut = support.beyond_support(occupied, grid, plane)
@@ -245,7 +248,7 @@ def reconstruct_sequence(
     if surface == "tsdf":
         say("fuse", 0, len(ids))
         start = time.perf_counter()
-        fused = tsdf.fuse(grid, _depth_frames(sequence, ids, poses, ahead), sequence.camera, solid)
+        fused = tsdf.fuse(grid, _depth_frames(sequence, ids, at_depth, ahead), sequence.camera, solid)
         timings["fuse"] = time.perf_counter() - start
     say("mesh", 0, 1)
     start = time.perf_counter()
@@ -266,7 +269,7 @@ def reconstruct_sequence(
     with ThreadPoolExecutor(max_workers=1) as pool:  # the masks render on a second core while the labels are made
         rendering = pool.submit(render) if masks and ahead else None
         # what was seen: the carving frames' depth once more, against the mesh at their poses
-        labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, poses, ahead)), sequence.camera, filled, centre, plane)
+        labels = label_surface(mesh, grid, ((T, depth) for _, depth, T in _depth_frames(sequence, ids, at_depth, ahead)), sequence.camera, filled, centre, plane)
         timings["labels"] = time.perf_counter() - start
         start = time.perf_counter()
         if rendering is not None:

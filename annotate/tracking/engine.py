@@ -96,6 +96,7 @@ from evaluate.geometry import untransform
 from annotate.engines import anchor_frames, kept_by_a_person
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
+from sequences.timing import at_colour_time
 
 from .config import TrackingConfig, scaled_to
 from .consistency import chain_departures, flagged_gaps, free_spin_runs, rotation_jumps
@@ -656,7 +657,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # kept the y their manual frames gave them (height.py)
             poses = centred_heights(tracker, ids, poses, side, every=config.hinge_tilt_every)
 
-    # 6: the document
+    # 6: the document, its poses at the colour instants (the registrations' are at the depth ones: sequences.timing)
+    at_colour = at_colour_time(sequence, {f: poses[f] for f in ids})
     kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]
     jumps = dict(zip(ids, rotation_jumps(kept, symmetric)))
     out = annotation.copy()
@@ -685,12 +687,12 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason", "flag_spin_only")}
             extra.update(figures)
             if config.update_manual:
-                new = FramePose.from_matrix(poses[frame_id], old.source, extra)
+                new = FramePose.from_matrix(at_colour[frame_id], old.source, extra)
             else:
                 new = FramePose(old.position.copy(), old.orientation.copy(), old.source, extra)
             out.frames[frame_id] = new
         else:
-            out.frames[frame_id] = FramePose.from_matrix(poses[frame_id], "tracked", figures)
+            out.frames[frame_id] = FramePose.from_matrix(at_colour[frame_id], "tracked", figures)
     flagged = {f for f in ids if out.frames[f].extra.get("flagged")}
     tracked = {f for f in ids if out.frames[f].source == "tracked"}
     for frame_id, (before, after) in flagged_gaps(ids, flagged, tracked, config.max_flag_gap).items():
