@@ -69,3 +69,4 @@ def at_colour_time(sequence: Sequence, poses: dict[str, np.ndarray]) -> dict[str
     colour, depth = times
     moved = resample_poses(np.stack([poses[f] for f in ids]), depth, colour)
     return dict(zip(ids, moved))
+

@@ -28,6 +28,7 @@ from annotate.engines import anchor_frames
 from evaluate.metrics.pose_errors import rotation_error
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
+from sequences.timing import at_depth_time
 
 from annotate.workers import ordered_map, resolve
 
@@ -357,10 +358,12 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
         raise ValueError("no posed frame to start from: place a box first")
     setup = _Setup(sequence, annotation, ids, replace(config, workers=1))  # a few frames: forking would not pay
     sources = others[: config.chain_model_frames] or [frame_id]
-    at = {f: (annotation.frames[f].matrix if f != frame_id else start) for f in sources}
+    # the document's poses are at the colour instants; the depth is posed at its own (sequences.timing)
+    at_depth = at_depth_time(sequence, {**{f: annotation.frames[f].matrix for f in others}, frame_id: start})
+    at = {f: at_depth[f] for f in sources}
     parts = {f: setup.crop(f, at[f], thin=False) for f in sources}
     model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
-    result = register(setup.crop(frame_id, start), model, start, config)
+    result = register(setup.crop(frame_id, at_depth[frame_id]), model, at_depth[frame_id], config)
     figures = frame_figures(result.pose, result, None, setup.symmetric, config)
     if not result.ok or result.fitness < config.min_fitness:
         figures["flagged"] = True
@@ -368,4 +371,5 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
         figures["flag_reason"] = (f"only {share:.0%} of the points in the box fit the object seen in the other frames: "
                                   "move the box onto the object and refine again")
         return FramePose.from_matrix(start, "refined", figures)
-    return FramePose.from_matrix(result.pose, "refined", figures)
+    to_colour = np.linalg.inv(at_depth[frame_id]) @ start  # the motion from the depth instant to the colour one
+    return FramePose.from_matrix(result.pose @ to_colour, "refined", figures)

@@ -96,7 +96,7 @@ from evaluate.geometry import untransform
 from annotate.engines import anchor_frames, kept_by_a_person
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
-from sequences.timing import at_colour_time
+from sequences.timing import at_colour_time, at_depth_time
 
 from .config import TrackingConfig, scaled_to
 from .consistency import chain_departures, flagged_gaps, free_spin_runs, rotation_jumps
@@ -731,17 +731,20 @@ def _refine_one(sequence: Sequence, annotation: Annotation, frame_id: str, confi
     symmetric = annotation.symmetry == "y"
     config = replace(config, workers=1)  # one frame, its model's crops included, on this process: forking would not pay
     tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
+    # the document's poses are at the colour instants; the depth is posed at its own (sequences.timing)
+    at_depth = at_depth_time(sequence, {**{f: annotation.frames[f].matrix for f in others}, frame_id: start})
     if others:
         here = ids.index(frame_id)
         # the nearest posed frames in time see most of what this one sees
         nearest = sorted(others, key=lambda f: abs(ids.index(f) - here))[: config.max_global_frames // 2]
-        model = build_model(tracker, {f: annotation.frames[f].matrix for f in sorted(nearest, key=ids.index)}, config.max_global_frames)
+        model = build_model(tracker, {f: at_depth[f] for f in sorted(nearest, key=ids.index)}, config.max_global_frames)
         hits = min_hits_for(model, config)
     else:
         model = tracker.new_model()
-        tracker.add_to_model(model, frame_id, start)  # alone: a self-consistency check of the placed box
+        tracker.add_to_model(model, frame_id, at_depth[frame_id])  # alone: a self-consistency check of the placed box
         hits = 1
-    result = tracker.register(frame_id, start, model, hits)
+    result = tracker.register(frame_id, at_depth[frame_id], model, hits)
     figures = dict(result.figures)
     figures = document_figures(figures, config)
-    return FramePose.from_matrix(result.pose, "refined", figures)
+    to_colour = np.linalg.inv(at_depth[frame_id]) @ start  # the motion from the depth instant to the colour one
+    return FramePose.from_matrix(result.pose @ to_colour, "refined", figures)
