@@ -15,9 +15,9 @@ from functools import partial
 import numpy as np
 import trimesh
 
+from sequences import timing
 from sequences.annotation import Annotation, annotation_path
 from sequences.errors import InputError
-from sequences import timing
 from sequences.reader import Sequence
 
 from . import SURFACE, SURFACES, carving, evidence, meshing, support, tsdf  # noqa: F401 (SURFACE, SURFACES: defined there, light to import)
