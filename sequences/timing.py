@@ -48,25 +48,24 @@ def resample_poses(poses: np.ndarray, times: np.ndarray, queries: np.ndarray) ->
     return out
 
 
-def at_depth_time(sequence: Sequence, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The document's colour-time ``poses`` (frame id -> 4x4) moved to each frame's depth instant, read from the track
-    they make; unchanged where the files carry no timestamps."""
+def _retimed(sequence: Sequence, poses: dict[str, np.ndarray], to_depth: bool) -> dict[str, np.ndarray]:
+    """``poses`` (frame id -> 4x4) taken at one of each frame's instants, resampled at the other (the depth instants
+    when ``to_depth``); unchanged where the files carry no timestamps."""
     ids = list(poses)
     times = frame_times(sequence, ids)
     if times is None or len(ids) < 2:
         return dict(poses)
     colour, depth = times
-    moved = resample_poses(np.stack([poses[f] for f in ids]), colour, depth)
+    moved = resample_poses(np.stack([poses[f] for f in ids]), *((colour, depth) if to_depth else (depth, colour)))
     return dict(zip(ids, moved))
+
+
+def at_depth_time(sequence: Sequence, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The document's colour-time ``poses`` (frame id -> 4x4) moved to each frame's depth instant, read from the track
+    they make; unchanged where the files carry no timestamps."""
+    return _retimed(sequence, poses, to_depth=True)
 
 
 def at_colour_time(sequence: Sequence, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Depth-time ``poses`` (a tracker's registrations of depth) moved to each frame's colour instant."""
-    ids = list(poses)
-    times = frame_times(sequence, ids)
-    if times is None or len(ids) < 2:
-        return dict(poses)
-    colour, depth = times
-    moved = resample_poses(np.stack([poses[f] for f in ids]), depth, colour)
-    return dict(zip(ids, moved))
-
+    return _retimed(sequence, poses, to_depth=False)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy import ndimage
 from test_reconstruct_scenes import cup_mesh, fscore, write_scene, y_cylinder
 
 from reconstruct.carving import VoxelGrid
@@ -83,7 +84,6 @@ def test_a_pocket_off_the_axis_carves_no_hidden_ring_inside_the_solid():
     body = (np.hypot(x, z) <= 0.03) & (np.abs(y) <= 0.03)
     pocket = (np.hypot(x - 0.018, z) <= 0.005) & (y > 0.01)
     occupied = body & ~pocket
-    from scipy import ndimage
     behind = occupied & ndimage.binary_dilation(~occupied, iterations=2)  # the band frames saw just behind the surface
     observed = ~occupied | behind
     fit = fit_revolution(behind, grid)

@@ -9,9 +9,16 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import trimesh
+import yaml
+from PIL import Image
 from scipy.spatial.transform import Rotation
+from test_reconstruct_scenes import render_depth
 
-from sequences.reader import FrameFiles
+import reconstruct.pipeline as pipeline
+from sequences.annotation import load_annotation
+from sequences.camera import Camera
+from sequences.reader import FrameFiles, open_sequence
 from sequences.timing import at_colour_time, at_depth_time, resample_poses
 
 PERIOD_US = 33_333.0
@@ -78,13 +85,6 @@ def _turntable(t_us: float) -> np.ndarray:
 def _turntable_scene(root: Path, depth_offset: float) -> Path:
     """40 frames of a box on the turntable (Redwood names with timestamps), depth taken ``depth_offset`` frame periods
     after colour; the document holds the colour instants' true poses."""
-    import trimesh
-    import yaml
-    from PIL import Image
-    from test_reconstruct_scenes import render_depth
-
-    from sequences.camera import Camera
-
     camera = Camera(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
     box = trimesh.creation.box([0.08, 0.06, 0.05])
     (root / "rgb").mkdir(parents=True)
@@ -108,10 +108,6 @@ def test_the_reconstruction_poses_each_depth_image_at_its_own_instant(tmp_path, 
     instants: posed at the depth instants, the carving's box matches the one of depth taken with the colour (a second
     scene, no offset; its views 3.6 deg apart from these, a millimetre apart) within 1.5 mm; posed at the colour
     instants it is 3.9 mm off."""
-    import reconstruct.pipeline as pipeline
-    from sequences.annotation import load_annotation
-    from sequences.reader import open_sequence
-
     def carved(root: Path):
         return pipeline.reconstruct_sequence(open_sequence(root), load_annotation(root / "annotation.yaml"), surface="carving")
 
