@@ -1,4 +1,4 @@
-"""One frame against one model: crop by the predicted box, register, keep symmetric rotations consistent, measure."""
+"""One frame against one model: crop by the predicted box, register, weigh a symmetric object's spin by what the registration measured of it, measure."""
 
 from __future__ import annotations
 
@@ -20,6 +20,53 @@ from annotate.symmetry_axis import closest_about_y
 
 #: The model parts kept for reuse (bytes): a mug frame's part is about 100 kB, a laptop's about 450 kB.
 MODEL_PART_BYTES = 64 << 20
+
+
+#: a symmetric object's spin about its y, as registered, is weighed against the predicted spin with this sigma (deg,
+#: the change of spin between frames a hand makes): a body of revolution measures no spin and keeps the prediction;
+#: a flattened bottle or a square bowl measures it and keeps its own
+SPIN_PRIOR_DEG = 1.5
+#: the spin's information is measured by turning the points this far (deg) either way and pairing them afresh
+SPIN_PROBE_DEG = 2.0
+#: a registration's points count as at most this many independent ones: neighbouring points' errors correlate
+INDEPENDENT_POINTS = 100
+
+
+def spin_information(points: np.ndarray, target, distance: float, sigma: float) -> float:
+    """Information (1/rad^2) on the spin about the object's y of object-frame ``points`` (N, 3) registered to ``target``:
+    the curvature of their summed squared point-to-plane residuals (each capped at ``distance``, m; ``sigma``: the
+    point noise, m) as they turn SPIN_PROBE_DEG either way, paired afresh each time. Pairing afresh makes a surface
+    of revolution measure no spin however noisy its model's normals: its turned points still lie on it (the
+    Jacobian through the normals would count their noise times the radius as information)."""
+    if len(points) == 0 or len(target) == 0:
+        return 0.0
+    normals = np.asarray(target.cloud.normals)
+    delta = np.radians(SPIN_PROBE_DEG)
+    costs = []
+    for angle in (-delta, 0.0, delta):
+        c, s = np.cos(angle), np.sin(angle)
+        turned = points @ np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]).T
+        gap, index = target.nearest(turned, 2 * distance)
+        near = np.isfinite(gap)
+        residual = np.full(len(points), distance)
+        residual[near] = np.minimum(np.abs(np.einsum("ij,ij->i", turned[near] - target.points[index[near]], normals[index[near]])), distance)
+        costs.append(float(np.sum(residual**2)))
+    scale = min(1.0, INDEPENDENT_POINTS / len(points))
+    return max(costs[0] + costs[2] - 2 * costs[1], 0.0) / (2 * delta**2 * sigma**2) * scale
+
+
+def measured_spin(pose: np.ndarray, predicted: np.ndarray, information: float) -> np.ndarray:
+    """``pose`` (4x4) with its spin about its y moved from ``predicted``'s spin towards its own as far as the
+    registration measured it: the spin's ``information`` (1/rad^2, :func:`spin_information`) against the prior of
+    SPIN_PRIOR_DEG (a Gaussian's posterior mean). The y axis and the centre stay the registration's."""
+    kept = closest_about_y(pose[:3, :3], predicted[:3, :3])
+    turn = kept.T @ pose[:3, :3]  # a rotation about y
+    angle = np.arctan2(turn[0, 2], turn[2, 2])
+    weight = information / (information + np.radians(SPIN_PRIOR_DEG) ** -2)
+    c, s = np.cos(weight * angle), np.sin(weight * angle)
+    out = pose.copy()
+    out[:3, :3] = kept @ np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return out
 
 
 def _nbytes(part: tuple) -> int:
@@ -102,7 +149,8 @@ class Tracker:
             return FrameResult(init_pose.copy(), False, figures)
         pose = invert(result.transform)
         if self.symmetric:
-            pose[:3, :3] = closest_about_y(pose[:3, :3], init_pose[:3, :3])
+            local = (points - pose[:3, 3]) @ pose[:3, :3]
+            pose = measured_spin(pose, init_pose, spin_information(local, target, config.registration.fine_distance, config.information_sigma))
         figures["fitness"] = result.fitness
         figures["inlier_rmse"] = result.inlier_rmse
         figures["in_box"] = in_box_share(points, pose, self.box)
