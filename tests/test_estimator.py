@@ -18,7 +18,7 @@ from annotate.estimator import EstimatorConfig, anchor_frames, refine_frame, tra
 import gtsam
 
 from annotate.estimator.graph import Factor, _steady, sigmas, solve, without_spin
-from annotate.estimator.model import fuse, revolution_axis, revolved
+from annotate.estimator.model import fuse, is_revolution, revolution_axis, revolved
 from annotate.estimator.observations import Crop, FrameCrops
 from annotate.estimator.scene import PLANE_DISTANCE
 from annotate.estimator.pipeline import CLOSURE_SIGMAS, _chain_model, _closure, _object_part, _Setup, chain_trust, initial_poses
@@ -353,6 +353,22 @@ def test_an_axis_further_from_y_than_the_boxes_can_be_off_or_an_oval_is_refused(
     oval = _bowl_model((0.0, 0.0), (0.0, 0.0), rng, oval=1.1)[0]
     assert revolved(oval, 0.004, fit(oval)) is None
     assert revolved(_bowl_model((0.0, 0.0), (0.0, 0.0), rng, oval=1.05)[0], 0.004, np.zeros(4)) is not None
+
+
+def test_a_round_bowl_is_a_surface_of_revolution_about_its_axis_only_and_a_square_one_about_none():
+    rng = np.random.default_rng(5)
+    model, _, c = _bowl_model((0.0, 0.0), (3.0, -2.0), rng)
+    assert is_revolution(model.points, model.normals, 0.004, np.array([0.0, 0.0, c[0], c[2]]))
+    # about a parallel axis 6 mm away its walls lie up to 6 mm off their profile: no surface of revolution
+    assert not is_revolution(model.points, model.normals, 0.004, np.array([0.0, 0.0, c[0] + 0.006, c[2]]))
+    # a square dish 12 cm wide, 5 cm tall, 2 mm apart: its walls' radius grows by 41 % from the middle to a corner
+    t, y = np.meshgrid(np.arange(-0.06, 0.06, 0.002), np.arange(0.0, 0.05, 0.002))
+    t, y = t.ravel(), y.ravel()
+    half = np.full_like(t, 0.06)
+    walls = [np.stack([half, y, t], 1), np.stack([-half, y, t], 1), np.stack([t, y, half], 1), np.stack([t, y, -half], 1)]
+    normals = [np.tile(n, (len(t), 1)) for n in ([1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0], [0, 0, -1.0])]
+    square = np.concatenate(walls) + rng.normal(0, 0.0005, (4 * len(t), 3))
+    assert not is_revolution(square, np.concatenate(normals).astype(float), 0.004, np.zeros(4))
 
 
 class _Scene:

@@ -142,6 +142,28 @@ def revolution_axis(points: np.ndarray, normals: np.ndarray, voxel: float, max_t
     return params
 
 
+def _profile(p: np.ndarray, n: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Points ``p`` with unit normals ``n`` (axis frame) in their profile bins (:func:`_profile_bins`: inverse index,
+    radial, radius, radial part of the normal), each point's Cauchy weight about its bin's mean, and the median
+    distance (m) of the walls (radial normals) from their profile (inf without walls)."""
+    inverse, radial, r, n_r = _profile_bins(p, n, voxel)
+    value = np.where(radial, r, p[:, 1])
+    weight = np.ones(len(value))
+    for _ in range(PROFILE_PASSES):
+        mean = np.bincount(inverse, weight * value) / np.maximum(np.bincount(inverse, weight), 1e-12)
+        weight = 1.0 / (1.0 + ((value - mean[inverse]) / (voxel / 2)) ** 2)
+    deviation = float(np.median(np.abs(value - mean[inverse])[radial])) if radial.any() else np.inf
+    return inverse, radial, r, n_r, weight, deviation
+
+
+def is_revolution(points: np.ndarray, normals: np.ndarray, voxel: float, axis: np.ndarray) -> bool:
+    """Whether ``points`` (object frame, m) with unit ``normals`` lie on a surface of revolution about ``axis``
+    (:func:`_axis_frame`'s parameters): their walls within MAX_PROFILE_DEVIATION voxels of their profile at the
+    median. A round bowl or can is; a flattened bottle or a square bowl is not."""
+    R, c = _axis_frame(axis)
+    return _profile((points - c) @ R, normals @ R, voxel)[5] <= MAX_PROFILE_DEVIATION * voxel
+
+
 def revolved(model: Model, voxel: float, axis: np.ndarray) -> Model | None:
     """The model made a surface of revolution about ``axis`` (:func:`revolution_axis`), or None where its walls (points
     whose normals are mostly radial) lie further from their profile than MAX_PROFILE_DEVIATION voxels at the median
@@ -151,13 +173,8 @@ def revolved(model: Model, voxel: float, axis: np.ndarray) -> Model | None:
     (a hand's points on one side do not bulge the whole ring), each spun about the axis every ``voxel`` of its circle."""
     R, c = _axis_frame(axis)
     p, n = (model.points - c) @ R, model.normals @ R
-    inverse, radial, r, n_r = _profile_bins(p, n, voxel)
-    value = np.where(radial, r, p[:, 1])
-    weight = np.ones(len(value))
-    for _ in range(PROFILE_PASSES):
-        mean = np.bincount(inverse, weight * value) / np.maximum(np.bincount(inverse, weight), 1e-12)
-        weight = 1.0 / (1.0 + ((value - mean[inverse]) / (voxel / 2)) ** 2)
-    if not radial.any() or np.median(np.abs(value - mean[inverse])[radial]) > MAX_PROFILE_DEVIATION * voxel:
+    inverse, radial, r, n_r, weight, deviation = _profile(p, n, voxel)
+    if deviation > MAX_PROFILE_DEVIATION * voxel:
         return None
     total = np.maximum(np.bincount(inverse, weight), 1e-12)
     pr, py, nr, ny = (np.bincount(inverse, weight * a) / total for a in (r, p[:, 1], n_r, n[:, 1]))

@@ -94,6 +94,7 @@ import numpy as np
 
 from evaluate.geometry import untransform
 from annotate.engines import anchor_frames, kept_by_a_person
+from annotate.estimator.model import is_revolution
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 from sequences.timing import at_colour_time, at_depth_time
@@ -257,7 +258,8 @@ def _snap_symmetric(tracker: Tracker, fit: _AxisFit | None) -> np.ndarray | None
 def _flat_axis_shift(tracker: Tracker, model: ObjectModel, flat: np.ndarray) -> np.ndarray | None:
     """Correction (4x4, a translation across y) moving the box centre onto the symmetry axis along the box's y once
     ``flat`` (4x4, a rotation about the centre: _snap_flat) turned ``model`` (object frame before it), or None where
-    the fit fails or moves it further than ``config.max_axis_shift_m`` (then the fit is not the object's)."""
+    the fit fails, moves it further than ``config.max_axis_shift_m`` (then the fit is not the object's), or the model is
+    no surface of revolution about that axis (estimator.model.is_revolution: a square bowl)."""
     config = tracker.config
     target = model.target(min_hits_for(model, config))
     turn = flat[:3, :3]
@@ -269,6 +271,8 @@ def _flat_axis_shift(tracker: Tracker, model: ObjectModel, flat: np.ndarray) -> 
         return None
     if np.linalg.norm(point) > config.max_axis_shift_m:
         return None
+    if not is_revolution(points, normals, config.voxel_size, np.array([0.0, 0.0, point[0], point[2]])):
+        return None  # a square bowl's normal lines meet nowhere in particular: its box centre is the placed boxes'
     shift = np.eye(4)
     shift[:3, 3] = point  # its y is 0: the axis point nearest the centre
     return shift
