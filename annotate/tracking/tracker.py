@@ -1,4 +1,5 @@
-"""One frame against one model: crop by the predicted box, register, weigh a symmetric object's spin by what the registration measured of it, measure."""
+"""One frame against one model: crop by the predicted box, register, weigh a symmetric object's spin by what the
+registration measured of it, measure."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from .config import TrackingConfig
 from .frames import FrameStore
 from .model import ObjectModel
 from .quality import in_box_share
-from .registration import register
+from .registration import ModelTarget, register
 from .sampling import every_kth
 from annotate.symmetry_axis import closest_about_y
 
@@ -32,7 +33,7 @@ SPIN_PROBE_DEG = 2.0
 INDEPENDENT_POINTS = 100
 
 
-def spin_information(points: np.ndarray, target, distance: float, sigma: float) -> float:
+def spin_information(points: np.ndarray, target: ModelTarget, distance: float, sigma: float) -> float:
     """Information (1/rad^2) on the spin about the object's y of object-frame ``points`` (N, 3) registered to ``target``:
     the curvature of their summed squared point-to-plane residuals (each capped at ``distance``, m; ``sigma``: the
     point noise, m) as they turn SPIN_PROBE_DEG either way, paired afresh each time. Pairing afresh makes a surface
