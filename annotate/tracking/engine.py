@@ -18,25 +18,23 @@
 4s. stretches (a near-round object without symmetry, where consecutive frames' shape leaves the spin free: a mug): a
    stretch of frames that came out of the chains turned about the axis holds itself there in the model of all
    frames; each block of frames, registered to the model of the others, is turned by the spin they agree on
-   (stretch_spin.py: mug seed 1 p90 4.7 -> 2.85 deg);
+   (stretch_spin.py);
 4a. flips: a frame the refinement left turned over from the frame before it (a bottle upside down: its ends fit
    each other's place) is registered again from that frame's pose (refine.repair_flips), before the smoothing
-   would average it with its neighbours (a bottle with 3 manual frames: p90 49 -> 1.2 deg);
+   would average it with its neighbours;
 4b. smooth: where a frame's registration leaves a direction weak (a mug's spin with its handle
    hidden), the pose is taken from its neighbours by an information-weighted least-squares
    smoothing (smooth.py); a frame it turned 3-45 deg keeps its refined pose where that fits the trusted frames
    clearly better (refine.undo_smoothing_bends: a long run without evidence is bent by the smoothing alone). Then the frames still suspect (their chains disagreed and no restart
    cleared them) are registered once more to the model of the trusted final poses, which holds none
-   of their own points (refine.reregister_suspects: a mug's frames 5-9.6 deg off where its chains
-   were 22-38 deg apart came to 0.3-6.6 deg);
+   of their own points (refine.reregister_suspects);
 4c. slide: where the registration leaves one direction of translation free (a laptop seen on its
    faces slides along its hinge), the frame is moved along it where the fitness on a wider crop
    clearly rises (slide.py), unless that takes it off the path of its neighbours (then it is
    flagged: slide.against_the_motion);
 5. common frame: first, a near-round body without symmetry (a mug, not a box-like camera) has each frame moved
    square across its axis so that the axis its own wall's normals meet lands on the model's (axis_centring.py: its
-   chains leave the frames 0.2-2.2 mm nearer their cameras, which the model of all frames then holds, its wall
-   thinned); then the consistent poses are moved by the one correction that best fits all the
+   chains leave the frames nearer their cameras, which the model of all frames then holds, its wall thinned); then the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not
    set it); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
@@ -75,14 +73,11 @@ reached it, and a frame or two left unflagged between flagged frames is flagged 
 Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures), and the independent
 work (the chains, every frame's registration in a refinement round and the first round's restarts of suspect
 frames, the rechecks, the slides, the centring spans, a model's crops, the smoothing's information matrices and
-the document's in-box shares) on ``config.workers`` forked processes (workers.py): the same poses for any count.
-Measured on 2 cores (v5, seeds 0-3): a laptop 164-175 -> 96-126 ms per frame, the other objects 27-65 (ranges
-under ``MIN_FRAMES_FOR_WORKERS`` frames, and the refinement of one frame, run on one process); the restarts, the
-crops, the matrices and the shares on the workers took laptop seed 2 from 18.7 to 15.5 s and seed 1 from 19.2 to
-17.9 s (whole process, medians of 5 alternating pairs, on a machine whose speed drifted by a third). After the
+the document's in-box shares) on ``config.workers`` forked processes (workers.py): the same poses for any count
+(ranges under ``MIN_FRAMES_FOR_WORKERS`` frames, and the refinement of one frame, run on one process). After the
 chains, a large object's frames (a laptop's) are each cropped once, a little wider, and their later crops cut from
-that (FrameStore.hold; ``LARGE_BODY_AREA_M2``): laptops seeds 0-3, 172 -> 146 ms per frame (8 A B pairs). Such a
-body gets ``config.large_body_rounds`` fine rounds (one), not ``global_rounds``.
+that (FrameStore.hold; ``LARGE_BODY_AREA_M2``). Such a body gets ``config.large_body_rounds`` fine rounds (one), not
+``global_rounds``.
 """
 
 from __future__ import annotations
@@ -126,19 +121,14 @@ Progress = Callable[[int, int], None]
 
 
 #: Shorter ranges track on one process: forking and gathering cost about 30 ms per parallel step, which a short
-#: range does not win back (measured on 2 cores, v5 seed 1, one process -> two: mug 12 frames 0.53 -> 0.58-0.63 s,
-#: 24 frames 0.95-0.99 -> 0.97-1.14 s, 48 frames 2.39-2.56 -> 2.14-2.24 s; laptop 24 frames 2.96-3.14 -> 2.45-2.55 s).
+#: range does not win back.
 MIN_FRAMES_FOR_WORKERS = 40
 
 #: A large body: the box's two largest sides span at least this (m^2; a laptop, 0.35 x 0.34 m). After the chains, its
 #: frames' crops are cut from one wider crop per frame (FrameStore.hold): a crop's cost grows with the pixels the box
-#: covers (a laptop's ~1.9 ms for 13,000 pixels; a mug's ~0.5 ms). Measured with held crops for every object (v5 seeds
-#: 0-3, the issue's setting): laptop seed 1 152 / 148 / 180 ms per frame against 167 / 176 / 185 (A B pairs), the
-#: other objects no faster, and the mugs' spin moved with their crops (seed 1's p90 2.83 -> 4.40 deg, seed 2's 2.34 ->
-#: 3.30). And it gets ``config.large_body_rounds`` fine rounds: a laptop's second round turned its frames 0.04-0.09
-#: deg in the median (its first 0.10-0.19 deg, and 0.6-2.8 mm along the hinge, which the slide check and the centring
-#: take up); with one round, over the four settings (16 laptop runs) the centres summed 34.45 -> 33.44 mm and the
-#: failing checks 2 -> 1 (3 manual frames off by 5 deg, seed 1's centre 3.04 -> 2.85 mm).
+#: covers (a laptop's ~1.9 ms for 13,000 pixels; a mug's ~0.5 ms); smaller objects gain nothing from it, and a mug's
+#: spin moves with its crops. And it gets ``config.large_body_rounds`` fine rounds: a laptop's second round hardly
+#: turns its frames, and what its first moves along the hinge the slide check and the centring take up.
 LARGE_BODY_AREA_M2 = 0.05
 
 
@@ -232,9 +222,8 @@ def _usable_axis(fit: _AxisFit | None, config: TrackingConfig) -> tuple[np.ndarr
     """(direction, point) of ``fit``, or None where it is unreliable: too ill-conditioned, or more than 10 deg off
     the box's y."""
     if fit is None or _nearly_sphere(fit, config):
-        # the shape does not pin the axis down (a shallow bowl): the placed boxes' mean tilt is better; for a mug's
-        # body measured so too (v5 seed 0, 3 manual frames off by up to 3 deg: conditioning 0.25, median 1.26 ->
-        # 1.71 deg when snapped past this gate)
+        # the shape does not pin the axis down (a shallow bowl, an ill-conditioned mug body): the placed boxes' mean
+        # tilt is better
         return None
     if not _near_box_y(fit):
         return None
@@ -314,8 +303,7 @@ def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
         snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): along the handle it stays where it is
     if config.handle_plane_centring and fit is not None and _near_box_y(fit):
         # an ill-conditioned fit leaves the axis's tilt doubtful, not where it crosses the box's middle: the plane
-        # through it and the handle holds the box centre (measured on v5 mug seeds 0 and 1, conditioning 0.17 and
-        # 0.20: see handle.py)
+        # through it and the handle holds the box centre (handle.py)
         points, _ = model.points(min_hits_for(model, config))
         shift = onto_handle_plane(points, fit.axis, fit.point, config.max_handle_shift_m)
         if shift is not None:
@@ -400,8 +388,7 @@ def _stretch_spins(tracker: Tracker, results: dict[str, FrameResult], anchors: l
     if not check.round() or not any(a and b for a, b in zip(free, free[1:])):
         # a stretch is turned off by the chains where they carried the spin through consecutive frames whose shape
         # leaves it free (a mug's handle hidden); elsewhere the blocks' spins against the others are as far off as
-        # they would be turned (measured: v5 cameras pass the roundness test, with at most one free frame; seed 3's
-        # frames 11-20 turned by -1.2 deg, its p90 1.91 -> 2.52 deg; the mugs of seeds 1-7 had 3-28 free frames)
+        # they would be turned (a camera passes the roundness test, but has at most one free frame in a row)
         return results
     results, turned = stretch_spins(tracker, results, check.axis, check.point, step=step)
     return {f: FrameResult(r.pose, r.ok, {**r.figures, "stretch_spin_deg": turned[f]}) if f in turned else r for f, r in results.items()}
@@ -418,10 +405,7 @@ def colour_spins(tracker: Tracker, results: dict[str, FrameResult], model: Objec
     except ValueError:
         return {}, None
     poses = {f: r.pose for f, r in results.items() if r.ok}
-    # a suspect frame's pose is doubtful (its chains disagreed): its colours place no model colour. Measured once the
-    # suspect frames are re-registered (refine.reregister_suspects), v5 seeds 0-3: 3 manual frames off by up to 5 deg,
-    # mug seed 3 median / p90 2.80 / 3.54 -> 0.99 / 2.48 deg, failing checks 15 -> 13 of 96; 4 manual frames off by up
-    # to 3 deg, mug seed 2 p90 4.00 -> 4.15, seed 3 2.36 -> 2.90 (frames 0-2 and 21, flagged); the rest unchanged
+    # a suspect frame's pose is doubtful (its chains disagreed): its colours place no model colour
     spins = check.run(poses, {f: r.figures.get("fitness", 0.0) for f, r in results.items() if r.ok and not suspect(r, tracker.config)})
     return {f: (deg, spin_matrix(check.axis, check.point, deg)) for f, deg in spins.items()}, (check.axis, check.point)
 
@@ -458,15 +442,14 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     chaining = tracker  # the chains' tracker; the joint refinement and all after it use ``tracker`` (see step 4)
     nearly_round = not symmetric and _nearly_round(tracker, placed)
     if config.registration.facing and nearly_round:
-        # measured (v5, seeds 0-3): pairing only same-facing surfaces lets a mug's chains lose its spin where the
-        # handle is hidden (seed 1: 30 deg, p90 4.2 -> 47 deg), while it helps every other shape; and so does following
-        # frames below min_fitness (propagate.follows; 3 manual frames, seed 3: p90 2.72 -> 5.53 deg, frames 1-17
-        # 1-4 -> 2-15 deg off), while it kept the other shapes' chains on the object
+        # pairing only same-facing surfaces lets a mug's chains lose its spin where the handle is hidden, while it
+        # helps every other shape; and so does following frames below min_fitness (propagate.follows), while it keeps
+        # the other shapes' chains on the object
         chaining = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing=False),
                                                                                  chain_follow_fitness=config.min_fitness))
         # its refinement's fitness counts all pairs, as its chains' does: counted on the facing pairs alone, a mug
-        # held in the hand fell below min_fitness in 14 more frames (report mug, frames 10-23, 1.5-7 deg off),
-        # which then left the carving, and the hand space only they see free stayed in the mesh (18 mm taller)
+        # held in the hand falls below min_fitness in frames that then leave the carving, and the hand space only
+        # they see free stays in the mesh
         tracker = Tracker(tracker.store, annotation.extents, symmetric, replace(config, registration=replace(config.registration, facing_figures=False)))
     position = {f: i for i, f in enumerate(ids)}
     a_idx = [position[m] for m in anchors]
@@ -503,9 +486,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         for f in ids[a + 1 : b]:
             if forward[f].ok and backward[f].ok:
                 # both chains witness the frame, also where the blend switched to one of them: the switch
-                # may have picked the lost chain (measured: v5 bowl seed 1, 3 manual frames off by up to 5 deg,
-                # frames 19-36 took the backward chain 40 deg off while the forward one was within 4.3 deg;
-                # with that chain as the only witness, no rival was found and 10 frames > 10 deg lost their flag)
+                # may have picked the lost chain, and with it as the only witness no rival is found and the frames
+                # lose their flag
                 chain_poses[f] = (forward[f].pose, backward[f].pose)
     outer = []  # before the first and after the last manual frame
     if a_idx[0] > 0:
@@ -518,10 +500,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
 
     # 4: joint refinement against the model of all frames, pairing only facing surfaces even where the chains
     # did not: the model of all frames holds both sides of a thin wall, and a mug seen from above paired its inner
-    # bottom with the outer one and slid along its axis by the bottom's thickness (7-10 mm; v5 seed 0, frames 13-21:
-    # 4 -> 11 mm in the refinement). Measured on the v5 mugs (seeds 0-3, 4 manual frames off by up to 3 deg /
-    # 5 mm / 8%): median / p90 rotation and median centre 1.24/3.77/1.60, 2.33/4.78/2.43, 1.23/6.09/2.27,
-    # 1.26/3.09/3.21 -> 1.03/1.59/1.32, 1.41/4.78/2.08, 1.19/7.54/2.11, 1.28/2.08/2.88 (deg, deg, mm)
+    # bottom with the outer one and slid along its axis by the bottom's thickness
     chained = {f: r.pose for f, r in results.items()}
     if large:
         # from here on a frame is cropped at poses a few millimetres apart, many times: each once, a little wider,
@@ -573,7 +552,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     spins, spin_axis = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else ({}, None)
     if config.colour_spin_correct:
         # not a manual frame: the object frame is fitted to the placed boxes through their refined poses (step 5),
-        # and a turn of one of those moves every frame (measured: v5 mug seed 3, 3 manual frames, median 1.45 -> 2.5 deg)
+        # and a turn of one of those moves every frame
         results = {f: FrameResult(r.pose @ spins[f][1], r.ok, r.figures) if f in spins and spins[f][0] and f not in placed else r for f, r in results.items()}
     if nearly_round and spins and spin_axis is not None and config.spin_window > 0:
         # where the shape leaves the spin free somewhere (a mug, not a camera: the colour check found free frames),
@@ -635,9 +614,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             snap = _snap_hinge(tracker, model)
             hinged = snap is not None
         if snap is None and nearly_round and config.body_axis_snap:
-            # the placed boxes' mean tilt is off by their errors' mean (1-1.7 deg); the body's axis, fitted to the
-            # model, is not (v5 mugs, seeds 1-7, 4 manual frames off by up to 3 deg: medians 1.37, 1.00, 1.00, 1.82,
-            # 1.20, 1.49, 1.66 -> 1.11, 0.85, 1.08, 1.72, 0.89, 1.34, 1.02 deg; seed 0 and 3 manual frames: refused)
+            # the placed boxes' mean tilt is off by their errors' mean; the body's axis, fitted to the model, is not
+            # (refused where the fit is ill-conditioned)
             snap = _snap_body_axis(tracker, model)
         if hinged and config.hinge_centring:
             # ... and its centre along the hinge from the ends each frame sees, which the ICP leaves free (centring.py)
@@ -646,9 +624,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = {f: p @ snap for f, p in poses.items()}
         if nearly_round and not hinged and not faced and config.frame_tilt:
             # ... and each frame's own tilt from its foot and inner bottom, as a bowl's (tilt.py): the snap turns all
-            # frames alike, and is refused where the body's fit is ill-conditioned (all v5 mugs with 3 manual frames)
-            # (not measured on the suspect frames: a frame 14 mm off measures a tilt that is not the object's, and
-            # the window's median carried it to its trusted neighbours: unseen mug seed 5, p90 3.95 -> 1.88 deg)
+            # frames alike, and is refused where the body's fit is ill-conditioned
+            # (not measured on the suspect frames: a frame centimetres off measures a tilt that is not the object's,
+            # and the window's median would carry it to its trusted neighbours)
             poses = each_frame_untilted(tracker, ids, poses, skip=frozenset(f for f in ids if suspect(results[f], config)))
         if hinged and config.frame_hinge_tilt:
             # ... and each frame's own rotation from its base's and lid's faces: the snap turns all frames alike, but

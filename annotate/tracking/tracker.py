@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from evaluate.geometry import invert
+from evaluate.geometry import invert, rotation_about_y, untransform
 
 from . import icp
 from .config import TrackingConfig
@@ -45,8 +45,7 @@ def spin_information(points: np.ndarray, target: ModelTarget, distance: float, s
     delta = np.radians(SPIN_PROBE_DEG)
     costs = []
     for angle in (-delta, 0.0, delta):
-        c, s = np.cos(angle), np.sin(angle)
-        turned = points @ np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]).T
+        turned = points @ rotation_about_y(angle).T
         gap, index = target.nearest(turned, 2 * distance)
         near = np.isfinite(gap)
         residual = np.full(len(points), distance)
@@ -64,9 +63,8 @@ def measured_spin(pose: np.ndarray, predicted: np.ndarray, information: float) -
     turn = kept.T @ pose[:3, :3]  # a rotation about y
     angle = np.arctan2(turn[0, 2], turn[2, 2])
     weight = information / (information + np.radians(SPIN_PRIOR_DEG) ** -2)
-    c, s = np.cos(weight * angle), np.sin(weight * angle)
     out = pose.copy()
-    out[:3, :3] = kept @ np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    out[:3, :3] = kept @ rotation_about_y(weight * angle)
     return out
 
 
@@ -113,8 +111,7 @@ class Tracker:
 
         A frame's part (its voxels in the model's grid) is kept in ``store.model_parts`` (``MODEL_PART_BYTES`` of them)
         and reused where the frame comes again at the same pose, to the last bit: a mug's blocks of frames are each
-        judged against the model of the others (stretch_spin.py), 20 models of the same few poses (v5 mug seed 2:
-        1,100 of 1,270 parts again)."""
+        judged against the model of the others (stretch_spin.py): many models of the same few poses."""
         store, grid = self.store, model.grid_key()
         keys = [(f, np.asarray(pose, dtype=np.float64).tobytes(), self.box.tobytes(), self.config.voxel_size, weight, grid) for f, pose in zip(frame_ids, poses)]
         parts = {key: store.model_parts[key] for key in keys if key in store.model_parts}
@@ -150,8 +147,8 @@ class Tracker:
             return FrameResult(init_pose.copy(), False, figures)
         pose = invert(result.transform)
         if self.symmetric:
-            local = (points - pose[:3, 3]) @ pose[:3, :3]
-            pose = measured_spin(pose, init_pose, spin_information(local, target, config.registration.fine_distance, config.information_sigma))
+            information = spin_information(untransform(pose, points), target, config.registration.fine_distance, config.information_sigma)
+            pose = measured_spin(pose, init_pose, information)
         figures["fitness"] = result.fitness
         figures["inlier_rmse"] = result.inlier_rmse
         figures["in_box"] = in_box_share(points, pose, self.box)
