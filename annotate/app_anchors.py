@@ -1,19 +1,23 @@
 """What a tracking run keeps and what it changed: the anchors before it, the moved frames after it.
 
 The anchors are the boxes a person placed (manual), refined, or accepted in review: the engines' rule
-(``annotate.estimator.anchor_frames``). A run keeps them exactly as they are: the engine sees them as placed boxes
-(an engine that anchors only ``manual`` boxes anchors them all), and afterwards each gets its own pose and source
-back; the engine's figures and flags about it stay beside them. The other frames in the range get the engine's
-poses; :func:`pose_changes` measures how far each frame that had a pose moved (degrees, ignoring the turn about y
-for symmetry y, and millimetres of the box centre).
+(``annotate.estimator.anchor_frames``). A run keeps them as anchors: the engine sees them as placed boxes (an engine
+that anchors only ``manual`` boxes anchors them all), and afterwards each gets its own source back. An anchor takes
+the pose the engine estimated where the engine kept the person's box beside it (engines.anchored_pose: within the
+placement's tolerance, so that the object frame is one and no pose jumps at an anchor); the box stays what later runs
+anchor on. Any other pose an engine gives an anchor is undone. The engine's figures and flags about it stay beside
+them. The other frames in the range get the engine's poses; :func:`pose_changes` measures how far each frame that
+had a pose moved (degrees, ignoring the turn about y for symmetry y, and millimetres of the box centre).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from evaluate.metrics.pose_errors import rotation_error, translation_error
-from sequences.annotation import Annotation, FramePose
+from sequences.annotation import PLACED_KEY, Annotation, FramePose
 
 #: A frame counts as changed when its box turned or moved at least this much (deg, m): below, rounding.
 CHANGED_DEG = 0.05
@@ -46,13 +50,30 @@ def engine_view(annotation: Annotation, kept: list[str]) -> Annotation:
 
 
 def restore_anchors(result: Annotation, annotation: Annotation, kept: list[str]) -> Annotation:
-    """``result`` with each anchor's pose and source as in ``annotation`` (the engine's figures about it kept)."""
+    """``result`` with each anchor's source as in ``annotation`` (the engine's figures about it kept), and its pose
+    the engine's where the engine kept the person's box beside it, else the pose it had."""
     for frame_id in kept:
         before = annotation.frames[frame_id]
         after = result.frames.get(frame_id)
-        extra = dict(before.extra) if after is None else {**after.extra, **{k: v for k, v in before.extra.items() if k == "reviewed"}}
-        result.frames[frame_id] = FramePose(before.position.copy(), before.orientation.copy(), before.source, extra)
+        if after is None:
+            result.frames[frame_id] = FramePose(before.position.copy(), before.orientation.copy(), before.source, dict(before.extra))
+            continue
+        extra = {**after.extra, **{k: v for k, v in before.extra.items() if k == "reviewed"}}
+        if on_the_track(before, after):
+            result.frames[frame_id] = FramePose(after.position.copy(), after.orientation.copy(), before.source, extra)
+        else:
+            extra = {k: v for k, v in extra.items() if k != PLACED_KEY}
+            if PLACED_KEY in before.extra:
+                extra[PLACED_KEY] = before.extra[PLACED_KEY]
+            result.frames[frame_id] = FramePose(before.position.copy(), before.orientation.copy(), before.source, extra)
     return result
+
+
+def on_the_track(before: FramePose, after: FramePose) -> bool:
+    """Whether a run posed the anchor ``before`` on the track as ``after``: it kept the same person's box beside it."""
+    if PLACED_KEY not in after.extra:
+        return False
+    return bool(np.allclose(after.placed_matrix, before.placed_matrix, atol=1e-9))
 
 
 @dataclass(frozen=True)
@@ -96,7 +117,9 @@ def keep_markdown(annotation: Annotation, ids: list[str], all_ids: list[str]) ->
     posed = sum(1 for f in ids if f in annotation.frames and f not in kept)
     replaced = f", replacing the {posed} tracked ones there" if posed else ""
     return (f"A run over frames {all_ids.index(ids[0]) + 1}-{all_ids.index(ids[-1]) + 1} **keeps {len(kept)} box"
-            f"{'es' if len(kept) != 1 else ''}** as they are: frame{'s' if len(kept) != 1 else ''} {names}{more}; it poses the other {others}{replaced}.")
+            f"{'es' if len(kept) != 1 else ''}** as anchors: frame{'s' if len(kept) != 1 else ''} {names}{more}; it poses the other {others}{replaced}. "
+            "An anchor takes the pose the other frames agree on where that lies within its placement's tolerance "
+            "(its box stays in the document, and later runs anchor on it); else it keeps its box and is flagged.")
 
 
 def changes_markdown(changes: list[Change], new: int) -> str:

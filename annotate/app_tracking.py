@@ -16,7 +16,7 @@ import numpy as np
 
 from sequences.annotation import Annotation, FramePose
 
-from .app_anchors import anchors, changes_markdown, engine_view, keep_markdown, pose_changes, restore_anchors
+from .app_anchors import anchors, changes_markdown, engine_view, keep_markdown, on_the_track, pose_changes, restore_anchors
 from .app_refine import engine_config, judge_refine
 from .app_review import Flagged, is_flagged
 
@@ -177,7 +177,7 @@ class TrackingPanel:
         return True
 
     def _track(self, engine, document: Annotation, ids: list[str], kept: list[str]) -> None:
-        """The run: the engine sees the anchors as placed boxes and gives them back as they were (app_anchors); the
+        """The run: the engine sees the anchors as placed boxes and gives them back as anchors (app_anchors); the
         frames an annotator changed while it ran keep the annotator's boxes."""
         app = self.app
         start = time.perf_counter()
@@ -216,7 +216,10 @@ class TrackingPanel:
         changed, new = pose_changes(document, after, taken, all_ids)
         flagged = sum(1 for f in taken if is_flagged(after.frames[f]))
         skipped = len(ids) - len(taken) - sum(1 for f in ids if f not in result.frames)
-        kept_note = f" Kept as they were the {len(kept)} box{'es' if len(kept) != 1 else ''} placed, refined or accepted."
+        followed = sum(1 for f in kept if f in after.frames and f in document.frames and on_the_track(document.frames[f], after.frames[f])
+                       and f in taken)
+        kept_note = (f" The {len(kept)} box{'es' if len(kept) != 1 else ''} placed, refined or accepted stay the anchors; {followed} took the "
+                     "pose the other frames agree on (each box kept beside it).")
         edited = f" {skipped} frames changed while it ran keep your boxes." if skipped else ""
         summary = f"Tracked {len(ids)} frames in {time.perf_counter() - start:.1f} s; {flagged} flagged for review.{kept_note}{edited}"
         self.changes.content = "Last run: " + changes_markdown(changed, new)

@@ -12,6 +12,8 @@ from types import ModuleType
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from sequences.annotation import Annotation, FramePose
 
 #: What a batch's local processes import once (batch.local's server): the tracking engines.
@@ -47,5 +49,27 @@ def kept_by_a_person(pose: "FramePose") -> bool:
 
 def anchor_frames(annotation: "Annotation", ids: list[str]) -> list[str]:
     """The frames of ``ids`` whose box a person placed, refined or accepted, in order: every engine keeps them as
-    anchors (their boxes stay in the document) unless the person clears them."""
+    anchors (their boxes stay in the document, :func:`anchored_pose`) unless the person clears them."""
     return [f for f in ids if f in annotation.frames and kept_by_a_person(annotation.frames[f])]
+
+
+def anchored_pose(old: "FramePose", estimate: "np.ndarray", extra: dict, follows: bool) -> "FramePose":
+    """An anchor's pose after a run, its source kept: where ``follows`` (the estimate lies within the placement's
+    tolerance of the person's box), the estimate (4x4, object to camera at the colour instant) with the person's box
+    kept under ``placed``; else the person's box. The box a person gives stays what every later run anchors on
+    (FramePose.placed_matrix): one rigid object frame needs each placed box moved by its own placement error, or the
+    poses jump at every anchor."""
+    import numpy as np  # here: the command lines import this module and start before NumPy loads
+
+    from sequences.annotation import PLACED_KEY, FramePose
+
+    extra = {k: v for k, v in extra.items() if k != PLACED_KEY}
+    kept = old.extra.get(PLACED_KEY)
+    if kept is not None:
+        person = FramePose(np.asarray(kept["position"], dtype=np.float64), np.asarray(kept["orientation"], dtype=np.float64), old.source)
+    else:
+        person = FramePose(old.position.copy(), old.orientation.copy(), old.source)
+    if not follows:
+        return FramePose(person.position, person.orientation, old.source, extra)
+    extra[PLACED_KEY] = {"position": [float(x) for x in person.position], "orientation": [float(x) for x in person.orientation]}
+    return FramePose.from_matrix(estimate, old.source, extra)

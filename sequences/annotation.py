@@ -32,6 +32,8 @@ from .names import check_name, safe_name
 CATEGORIES = ("bottle", "bowl", "mug", "can", "camera", "laptop", "other")
 SYMMETRIES = ("none", "y")
 SOURCES = ("manual", "tracked", "refined")
+#: A frame's extra key for the box a person gave an anchor that a tracking run posed on the track (FramePose.placed_matrix).
+PLACED_KEY = "placed"
 #: Categories whose shapes are rotationally symmetric about object +y by default.
 SYMMETRIC_CATEGORIES = ("bottle", "bowl", "can")
 DEFAULT_NAME = "annotation.yaml"
@@ -49,7 +51,10 @@ def default_symmetry(category: str) -> str:
 
 @dataclass
 class FramePose:
-    """A frame's box pose: position (3,) m in the camera frame, orientation (4,) x y z w (object to camera)."""
+    """A frame's box pose: position (3,) m in the camera frame, orientation (4,) x y z w (object to camera).
+
+    ``extra`` holds the tracking figures and flags, and under ``placed`` (position, orientation) the box a person gave
+    an anchor frame where a tracking run posed it on the track instead (within the placement's tolerance)."""
 
     position: np.ndarray
     orientation: np.ndarray
@@ -65,6 +70,15 @@ class FramePose:
         T[:3, :3] = Rotation.from_quat(self.orientation).as_matrix()
         T[:3, 3] = self.position
         return T
+
+    @property
+    def placed_matrix(self) -> np.ndarray:
+        """4x4 object-to-camera box a person gave this frame: the box kept under ``placed`` where a tracking run posed
+        the frame on the track (engines.anchored_pose), else the pose itself."""
+        kept = self.extra.get(PLACED_KEY)
+        if kept is None:
+            return self.matrix
+        return FramePose(np.asarray(kept["position"], dtype=np.float64), np.asarray(kept["orientation"], dtype=np.float64)).matrix
 
     @classmethod
     def from_matrix(cls, T: np.ndarray, source: str = "manual", extra: dict | None = None) -> "FramePose":
@@ -185,6 +199,16 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
         if source not in SOURCES:
             raise InputError(path, f"{where} source {source!r} is not one of {', '.join(SOURCES)}")
         extra = {k: v for k, v in entry.items() if k not in ("position", "orientation", "source")}
+        if PLACED_KEY in extra:
+            kept = extra[PLACED_KEY]
+            if not isinstance(kept, dict):
+                raise InputError(path, f"{where} {PLACED_KEY} must be a mapping with position and orientation (the box a person placed)")
+            placed_position = _vector(path, f"{where} {PLACED_KEY} position", kept.get("position"), 3)
+            placed_orientation = _vector(path, f"{where} {PLACED_KEY} orientation", kept.get("orientation"), 4)
+            placed_norm = float(np.linalg.norm(placed_orientation))
+            if not math.isclose(placed_norm, 1.0, abs_tol=1e-3):
+                raise InputError(path, f"{where} {PLACED_KEY} orientation is not a unit quaternion (norm {placed_norm:.4g}; order x, y, z, w)")
+            extra[PLACED_KEY] = {"position": placed_position.tolist(), "orientation": (placed_orientation / placed_norm).tolist()}
         frames[frame_id] = FramePose(position, orientation / norm, source, extra)
     extra = {k: v for k, v in data.items() if k not in ("sequence", "category", "symmetry", "extents", "frames")}
     return Annotation(sequence, category, symmetry, extents, frames, extra)

@@ -58,6 +58,27 @@ def test_pose_matrix_maps_object_to_camera(tmp_path):
     assert np.allclose(back.matrix, pose.matrix)
 
 
+def test_an_anchor_posed_on_the_track_keeps_the_persons_box_through_a_round_trip(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    from annotate.engines import anchored_pose
+
+    person = FramePose(np.array([0.01, -0.02, 0.61]), np.array([0.0, 0.0, 0.0, 1.0]), "refined", {"note": "mine"})
+    estimate = np.eye(4)
+    estimate[:3, :3] = Rotation.from_euler("x", 2.0, degrees=True).as_matrix()
+    estimate[:3, 3] = [0.012, -0.02, 0.61]
+    moved = anchored_pose(person, estimate, {"fitness": 0.9}, follows=True)
+    assert moved.source == "refined" and np.allclose(moved.matrix, estimate) and np.allclose(moved.placed_matrix, person.matrix)
+    # a second run moves it again from the person's box, never from the moved pose
+    again = anchored_pose(moved, np.eye(4) @ estimate, {"fitness": 0.8}, follows=False)
+    assert np.allclose(again.matrix, person.matrix) and "placed" not in again.extra
+    path = tmp_path / "annotation.yaml"
+    save_annotation(Annotation("s", "mug", "none", np.array([0.1, 0.1, 0.1]), {"0000001": moved}), path)
+    loaded = load_annotation(path).frames["0000001"]
+    assert np.allclose(loaded.matrix, estimate) and np.allclose(loaded.placed_matrix, person.matrix)
+    assert FramePose(person.position, person.orientation).placed_matrix.tolist() == person.matrix.tolist()
+
+
 def test_unquoted_frame_ids_keep_seven_digits(tmp_path):
     path = tmp_path / "annotation.yaml"
     path.write_text("category: can\nframes:\n  0000012:\n    position: [0, 0, 1]\n    orientation: [0, 0, 0, 1]\n")
@@ -76,6 +97,9 @@ def test_unquoted_frame_ids_keep_seven_digits(tmp_path):
     ("frames:\n  '1': {position: [0, 0, 1], orientation: [0, 0, 0, 2]}\n", "not a unit quaternion"),
     ("frames:\n  '1': {position: [0, 0, 1], orientation: [0, 0, 0, 1], source: guessed}\n", "source 'guessed'"),
     ("frames: [1, 2]\n", "frames must be a mapping"),
+    ("frames:\n  '1': {position: [0, 0, 1], orientation: [0, 0, 0, 1], placed: [0, 0, 1]}\n", "placed must be a mapping"),
+    ("frames:\n  '1': {position: [0, 0, 1], orientation: [0, 0, 0, 1], placed: {position: [0, 0, 1]}}\n", "placed orientation must be a list of 4"),
+    ("frames:\n  '1': {position: [0, 0, 1], orientation: [0, 0, 0, 1], placed: {position: [0, 0, 1], orientation: [0, 0, 1, 1]}}\n", "placed orientation is not a unit"),
     ("- just\n- a list\n", "must be a mapping"),
     ("frames: {a: [1\n", "malformed YAML"),
 ])

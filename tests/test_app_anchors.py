@@ -1,5 +1,6 @@
-"""Tracking keeps what people did (issue 49 item 4): placed, refined and accepted boxes stay as they are; the page says
-what a run will keep before it runs, and which frames it moved, by how much, after."""
+"""Tracking keeps what people did (issue 49 item 4): placed, refined and accepted boxes stay the anchors, each either
+where it was or on the track with the person's box kept beside it; the page says what a run will keep before it runs,
+and which frames it moved, by how much, after."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import annotate.app_tracking as app_tracking
 from annotate.app import App
 from annotate.app_anchors import anchors, changes_markdown, keep_markdown, pose_changes
 from annotate.app_tracking import tracking_engine
+from annotate.engines import anchored_pose
 from sequences.annotation import Annotation, FramePose, load_annotation
 from sequences.reader import open_sequence
 
@@ -66,8 +68,12 @@ def test_a_run_keeps_placed_refined_and_accepted_boxes(engine, sequence_root, tm
         doc = load_annotation(app.state.path)
         for frame_id in (ids[0], ids[2], ids[4]):
             kept = doc.frames[frame_id]
-            np.testing.assert_array_equal(kept.position, frames[frame_id].position)
-            np.testing.assert_array_equal(kept.orientation, frames[frame_id].orientation)
+            # the person's box: the pose itself, or kept beside the pose on the track (within 2 placement sigmas)
+            np.testing.assert_allclose(kept.placed_matrix, frames[frame_id].matrix, atol=1e-9)
+            if "placed" not in kept.extra:
+                np.testing.assert_array_equal(kept.position, frames[frame_id].position)
+            else:
+                assert kept.extra["manual_correction_deg"] <= 6.0 and kept.extra["manual_correction_m"] <= 0.012
             assert kept.source == frames[frame_id].source
         assert doc.frames[ids[2]].extra["reviewed"] == "accepted"
         assert doc.frames[ids[1]].source == "tracked" and doc.frames[ids[3]].source == "tracked"
@@ -76,7 +82,7 @@ def test_a_run_keeps_placed_refined_and_accepted_boxes(engine, sequence_root, tm
         assert changes.startswith("Last run: ") and "1 frame got a first pose" in changes, changes
         if "moved" in changes:
             assert "2: " in changes and "°" in changes and " mm" in changes
-        assert "Kept as they were the 3 boxes placed, refined or accepted" in app.message.content
+        assert "The 3 boxes placed, refined or accepted stay the anchors" in app.message.content
     finally:
         app.close()
         server.stop()
@@ -121,6 +127,53 @@ def test_anchors_come_back_whatever_the_engine_does_and_edits_made_meanwhile_sta
         server.stop()
 
 
+def test_anchors_an_engine_posed_on_the_track_take_that_pose_and_the_next_run_anchors_on_the_persons_box(sequence_root, tmp_path, monkeypatch):
+    """An engine that follows the anchor rule (engines.anchored_pose): each anchor takes the engine's pose with the
+    person's box beside it; the next run sees that box, not the moved pose; the page counts them."""
+    root, poses = sequence_root
+    app, server = _app(root, tmp_path)
+    try:
+        frames = _people_and_tracker(app, poses)
+        ids = app.sequence.ids
+        seen = []
+        turn = Rotation.from_euler("z", 1.0, degrees=True)
+
+        def track_sequence(sequence, annotation, frames=None, progress=None, config=None):
+            seen.append({f: p.placed_matrix for f, p in annotation.frames.items() if p.source == "manual"})
+            out = annotation.copy()
+            for frame_id in frames:
+                base = annotation.frames.get(frame_id) or FramePose(np.array([0, 0, 0.7]), np.array([0, 0, 0, 1.0]), "tracked")
+                start = FramePose.from_matrix(base.placed_matrix)  # an anchor's: the person's box
+                estimate = FramePose(start.position + [0.002, 0, 0], (turn * Rotation.from_quat(start.orientation)).as_quat()).matrix
+                if base.source == "manual":
+                    out.frames[frame_id] = anchored_pose(base, estimate, {"fitness": 0.9}, follows=True)
+                else:
+                    out.frames[frame_id] = FramePose.from_matrix(estimate, "tracked", {"fitness": 0.8})
+            return out
+
+        monkeypatch.setattr(app_tracking, "tracking_engine", lambda: SimpleNamespace(track_sequence=track_sequence, refine_frame=None))
+        for _ in range(2):
+            assert app.tracking.start_tracking(0, len(ids) - 1, wait=True)
+        doc = load_annotation(app.state.path)
+        for frame_id in (ids[0], ids[2], ids[4]):
+            person = frames[frame_id].matrix
+            # both runs saw the person's box; the document holds it beside the pose on the track, its source kept
+            for run in seen:
+                np.testing.assert_allclose(run[frame_id], person, atol=1e-9)
+            np.testing.assert_allclose(doc.frames[frame_id].placed_matrix, person, atol=1e-9)
+            np.testing.assert_allclose(doc.frames[frame_id].position, frames[frame_id].position + [0.002, 0, 0], atol=1e-9)
+            assert doc.frames[frame_id].source == frames[frame_id].source
+        assert doc.frames[ids[2]].extra["reviewed"] == "accepted"
+        assert "3 took the pose the other frames agree on" in app.message.content
+        # a person who moves the box again makes that the box: the kept one goes
+        app.state.set_frame(0)
+        app.commit_box(frames[ids[0]].position + [0.0, 0.001, 0.0], frames[ids[0]].orientation)
+        assert "placed" not in app.state.document().frames[ids[0]].extra
+    finally:
+        app.close()
+        server.stop()
+
+
 def test_changes_are_measured_in_degrees_and_millimetres_largest_first():
     ids = [f"{k:07d}" for k in range(1, 7)]
     before = Annotation("s", "mug", "none", np.array([0.1, 0.1, 0.1]))
@@ -147,5 +200,5 @@ def test_changes_are_measured_in_degrees_and_millimetres_largest_first():
     before.frames[ids[2]].extra["reviewed"] = "accepted"
     assert anchors(before, ids) == [ids[0], ids[2]]
     text = keep_markdown(before, ids, ids)
-    assert "keeps 2 boxes" in text and "1 (placed), 3 (accepted)" in text and "poses the other 4, replacing the 2 tracked ones there" in text
+    assert "keeps 2 boxes" in text and "as anchors" in text and "1 (placed), 3 (accepted)" in text and "poses the other 4, replacing the 2 tracked ones there" in text
     assert "none yet" in keep_markdown(Annotation("s"), ids, ids)

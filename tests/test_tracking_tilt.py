@@ -163,3 +163,28 @@ def test_suspect_frames_measure_no_tilt():
     tilts = frame_tilts(tracker, poses, skip=frozenset({"0000001", "0000003"}))
     assert cropped == ["0000000", "0000002"] and sorted(tilts) == ["0000000", "0000002"]
     np.testing.assert_allclose(np.degrees(np.linalg.norm(tilts["0000000"])), 2.0, atol=0.5)  # one frame alone: 2.33 deg
+
+
+def test_a_dome_seen_from_one_side_measures_no_tilt_and_a_flat_face_its_own():
+    """A curved patch seen from one side (half of a dome's cap: radius 15 cm, 25 deg) fills the cone on one side of y
+    only: the cone's mean walks about its whole width (4.3 deg), which no face of the object says; the default limit,
+    half the cone, refuses it. A flat face tilted 2 deg is measured (within 0.1 deg)."""
+    rng = np.random.default_rng(0)
+    config = TrackingConfig()
+    assert config.max_frame_tilt_deg <= config.flat_cone_deg / 2
+    theta = np.arccos(rng.uniform(np.cos(np.radians(25.0)), 1.0, 20000))
+    phi = rng.uniform(0.0, np.pi, 20000)
+    dome = 0.15 * np.stack([np.sin(theta) * np.cos(phi), np.cos(theta), np.sin(theta) * np.sin(phi)], axis=1)
+    flat = np.column_stack([rng.uniform(-0.04, 0.04, 3000), np.zeros(3000), rng.uniform(-0.04, 0.04, 3000)])
+    flat = flat @ Rotation.from_rotvec(np.radians([2.0, 0.0, 0.0])).as_matrix().T
+
+    def seen(points: np.ndarray) -> np.ndarray:  # one point per 3 mm voxel, 0.5 mm of noise
+        _, first = np.unique(np.floor(points / 0.003).astype(np.int64), axis=0, return_index=True)
+        return points[np.sort(first)] + rng.normal(0.0, 0.0005, (len(first), 3))
+
+    dome, flat = seen(dome), seen(flat)
+    walked = frame_tilt(dome, RADIUS, CONE, MIN_NORMALS, 20.0)
+    assert walked is not None and np.degrees(np.linalg.norm(walked)) > 4.0
+    assert frame_tilt(dome, RADIUS, config.flat_cone_deg, MIN_NORMALS, config.max_frame_tilt_deg) is None
+    tilt = frame_tilt(flat, RADIUS, config.flat_cone_deg, MIN_NORMALS, config.max_frame_tilt_deg)
+    np.testing.assert_allclose(np.degrees(tilt), [-2.0, 0.0, 0.0], atol=0.25)

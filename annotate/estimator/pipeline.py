@@ -12,7 +12,9 @@
    the graph solved again with those registrations; until no frame moves more than ``settled`` or ``rounds`` are
    done;
 5. flags from the estimate: the registration's fitness, the graph's marginal standard deviation, and how far the
-   graph pulled the frame from its registration, each with its reason in words.
+   graph pulled the frame from its registration, each with its reason in words;
+6. the anchors take their solved poses within ``ANCHOR_TOLERANCE_SIGMAS`` of their placed boxes (one rigid object
+   frame: each placed box is off by its own error), the boxes kept beside them as the anchors of later runs.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotate.engines import anchor_frames
+from annotate.engines import anchor_frames, anchored_pose
 from evaluate.metrics.pose_errors import rotation_error
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
@@ -52,6 +54,9 @@ RECROP_DEG, RECROP_M = 0.5, 0.001
 ROUND_BLOCKS = 4
 #: for symmetry y, a model's axis fitted further from the object's y than this many anchor sigmas is no axis
 AXIS_SIGMAS = 3.0
+#: an anchor takes its solved pose where it lies within this many anchor sigmas of the placed box (rotation and centre
+#: each), else keeps the box and is flagged: the annotator should look
+ANCHOR_TOLERANCE_SIGMAS = 2.0
 #: a chain closing within this many anchor sigmas (degrees over their sigma plus millimetres over theirs) is trusted
 #: fully: two boxes each off by one sigma, in opposite directions, close at 4
 CLOSURE_SIGMAS = 4.0
@@ -283,7 +288,9 @@ def track_sequence(
 ) -> Annotation:
     """A new document with a pose for every frame of ``frames`` (default: all) from the anchors (see the module notes).
 
-    Anchors keep their box and source; the other frames get ``source: tracked``, their figures as extra keys, and
+    Anchors keep their source and take the solved pose where it lies within ``ANCHOR_TOLERANCE_SIGMAS`` anchor sigmas
+    of the person's box, which stays in the document as the anchor of later runs (engines.anchored_pose); else they
+    keep the box and are flagged. The other frames get ``source: tracked``, their figures as extra keys, and
     ``flagged: true`` with ``flag_reason`` where the estimate itself says it is weak. Raises ValueError when the range
     holds no anchor.
     """
@@ -293,7 +300,7 @@ def track_sequence(
     if not anchors:
         raise ValueError("no frame in the range has a box: place a box in at least one frame first")
     setup = _Setup(sequence, annotation, ids, config)
-    placed = {a: annotation.frames[a].matrix for a in anchors}
+    placed = {a: annotation.frames[a].placed_matrix for a in anchors}  # the person's boxes, where a run moved them
     anchored = {setup.index[a]: placed[a] for a in anchors}
     total = len(ids) - len(anchors) + config.rounds * len(ids)
     count = [0]
@@ -326,12 +333,21 @@ def track_sequence(
     every = [frame_figures(poses[k], registrations.get(f), None if solution is None else solution.covariances[k], setup.symmetric, config)
              for k, f in enumerate(ids)]
     flag_weak_runs(every, np.array([f in placed for f in ids]))
+    limit = (ANCHOR_TOLERANCE_SIGMAS * config.anchor_sigma_deg, ANCHOR_TOLERANCE_SIGMAS * config.anchor_sigma_m)
     for k, (frame_id, figures) in enumerate(zip(ids, every)):
         if frame_id in placed:
             old = annotation.frames[frame_id]
             extra = {key: v for key, v in old.extra.items() if key not in ("flagged", "flag_reason")}
             extra.update({key: v for key, v in figures.items() if key not in ("flagged", "flag_reason")})
-            out.frames[frame_id] = FramePose(old.position.copy(), old.orientation.copy(), old.source, extra)
+            degrees = float(rotation_error(placed[frame_id][:3, :3], poses[k][:3, :3], "y" if setup.symmetric else "none"))
+            metres = float(np.linalg.norm(placed[frame_id][:3, 3] - poses[k][:3, 3]))
+            extra["manual_correction_deg"], extra["manual_correction_m"] = round(degrees, 3), round(metres, 5)
+            follows = degrees <= limit[0] and metres <= limit[1]
+            if not follows:
+                extra["flagged"] = True
+                extra["flag_reason"] = (f"the placed box is {degrees:.1f} deg and {1000 * metres:.0f} mm off the pose the other frames "
+                                        "agree on: it was kept (check it, or clear it)")
+            out.frames[frame_id] = anchored_pose(old, poses[k], extra, follows)
         else:
             out.frames[frame_id] = FramePose.from_matrix(poses[k], "tracked", figures)
     return out

@@ -49,6 +49,7 @@ import open3d as o3d
 from evaluate.geometry import untransform
 
 from .handle import handle_direction
+from annotate.estimator.model import is_revolution
 from annotate.symmetry_axis import fit_axis_point
 from .tilt import windowed_medians
 from .tracker import Tracker
@@ -144,8 +145,8 @@ def each_frame_on_axis(tracker: Tracker, ids: list[str], poses: dict[str, np.nda
     frames with too few wall points near them keep their pose, and so do all where the model gives no body."""
     config = tracker.config
     body = fit_body(model_points, model_normals)
-    if body is None:
-        return poses
+    if body is None or not is_revolution(model_points, model_normals, config.voxel_size, np.array([0.0, 0.0, body.point[0], body.point[2]])):
+        return poses  # no body, or no wall of revolution about it (a box that passed the roundness test): no axis to centre on
     height = float(tracker.extents[1])
 
     def measure(frame_id: str) -> np.ndarray | None:

@@ -92,12 +92,13 @@ class TrackingConfig:
     max_axis_shift_m: float = 0.01  #: ... by at most this (m; further means the fit is not the object's)
     frame_tilt: bool = True  #: ... and then every frame's tilt measured from its own normals near y (tilt.py)
     min_tilt_normals: int = 20  #: ... where at least this many of a frame's normals lie within flat_cone_deg of y
-    max_frame_tilt_deg: float = 6.0  #: ... and they turn it at most this far
+    #: ... and they turn it at most this far: half the cone. One frame sees a curved patch (a dome, a rounded foot)
+    #: from one side, and the cone's mean then walks towards its edge; a face's own tilt lies well inside it
+    max_frame_tilt_deg: float = 2.5
     tilt_window: int = 6  #: ... the median of the tilts measured within this many frames either side
     min_tilt_frames: int = 3  #: ... where at least this many frames there measure one
     threads: int = 1  #: Open3D threads while tracking (1: reproducible results; 0: Open3D's default)
     workers: int = 0  #: processes for independent work (workers.py; 0: the cores available, at most 4; 1: none): the same results for any count
-    update_manual: bool = False  #: also overwrite manual frames with their refined pose (source stays manual)
     # review thresholds: a frame outside any of them gets flagged: true and a flag_reason
     min_fitness: float = 0.5
     max_inlier_rmse: float = 0.003
@@ -117,6 +118,8 @@ class TrackingConfig:
     max_free_spin_run: int = 5  #: flag frames in a run of more frames whose geometry leaves the spin free, and in such a run at either end (consistency.free_spin_runs; 0: off)
     max_frame_rotation_deg: float = 20.0  #: a frame turned this far from a neighbour frame (consistency.py)
     max_flag_gap: int = 2  #: flag tracked frames in a run of at most this many unflagged ones between flagged frames (consistency.flagged_gaps; 0: off)
+    #: an anchor takes its estimated pose where that lies within this of the person's box (deg, m), else keeps the box
+    #: and is flagged (twice the placement sigma)
     max_manual_correction_deg: float = 6.0
     max_manual_correction_m: float = 0.012
     min_points: int = 100

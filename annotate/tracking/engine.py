@@ -32,8 +32,8 @@
    faces slides along its hinge), the frame is moved along it where the fitness on a wider crop
    clearly rises (slide.py), unless that takes it off the path of its neighbours (then it is
    flagged: slide.against_the_motion);
-5. common frame: first, a near-round body without symmetry (a mug, not a box-like camera) has each frame moved
-   square across its axis so that the axis its own wall's normals meet lands on the model's (axis_centring.py: its
+5. common frame: first, a near-round body without symmetry whose wall is a surface of revolution (a mug; not a
+   box-like camera, nor a block or a banana that passes the roundness test) has each frame moved square across its axis so that the axis its own wall's normals meet lands on the model's (axis_centring.py: its
    chains leave the frames nearer their cameras, which the model of all frames then holds, its wall thinned); then the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not
    set it); for symmetry y, the box is snapped upright on the
@@ -42,9 +42,11 @@
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), its centre moved across y
    onto the axis the model's normal lines meet along that y (symmetry.fit_axis_point), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
-   a near-round body without symmetry (a mug) has its box's y turned onto the body's axis the same way, about
+   a near-round body without symmetry whose wall is a surface of revolution (a mug: _revolves) has its box's y
+   turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis), that centre moved square across onto the plane of the
-   axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py);
+   axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py; by at most
+   half the cone of normals it reads: a curved patch seen from one side walks the cone's mean to its edge);
    a box-like body (a camera) onto its faces (faces.py); a hinged one (a laptop) its y onto its base's faces and
    its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the
    ends that the frames about it see (centring.py), and turned onto its own base's and lid's faces, the median
@@ -88,7 +90,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from evaluate.geometry import untransform
-from annotate.engines import anchor_frames, kept_by_a_person
+from annotate.engines import anchor_frames, anchored_pose, kept_by_a_person
 from annotate.estimator.model import is_revolution
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
@@ -312,6 +314,18 @@ def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     return snap
 
 
+def _revolves(tracker: Tracker, model: ObjectModel) -> bool:
+    """Whether ``model``'s wall is a surface of revolution about the box's y through the point its normal lines meet
+    (estimator.model.is_revolution)."""
+    target = model.target(min_hits_for(model, tracker.config))
+    normals = np.asarray(target.cloud.normals)
+    try:
+        point, _ = fit_axis_point(target.points, normals, np.array([0.0, 1.0, 0.0]))
+    except ValueError:
+        return False
+    return is_revolution(target.points, normals, tracker.config.voxel_size, np.array([0.0, 0.0, point[0], point[2]]))
+
+
 def _snap_faces(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     """Correction (4x4, a rotation about the box centre) turning the box onto the faces of ``model`` (faces.py), or
     None where the model is not box-like or the turn exceeds ``max_face_snap_deg``."""
@@ -419,10 +433,11 @@ def track_sequence(
 ) -> Annotation:
     """A new document with a pose for every frame of ``frames`` (default: all), from its manual frames.
 
-    Manual frames keep their placed pose (unless ``config.update_manual``) and ``source: manual``;
-    the others get ``source: tracked`` with quality figures as extra keys, and ``flagged: true``
-    plus ``flag_reason`` where a figure is beyond the configured thresholds. Raises ValueError when
-    the range holds no posed frame.
+    The anchors (boxes a person placed, refined or accepted) keep their source; each takes its estimated pose where
+    that lies within ``max_manual_correction_deg`` / ``_m`` of the person's box, which stays in the document as the
+    anchor of later runs (engines.anchored_pose), else keeps the box and is flagged. The others get ``source:
+    tracked`` with quality figures as extra keys, and ``flagged: true`` plus ``flag_reason`` where a figure is beyond
+    the configured thresholds. Raises ValueError when the range holds no posed frame.
     """
     config = scaled_to(config or TrackingConfig(), annotation.extents, annotation.symmetry == "y")
     with open3d_threads(config.threads):
@@ -438,7 +453,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         config = replace(config, workers=1)
     symmetric = annotation.symmetry == "y"
     tracker = Tracker(FrameStore(sequence, config.stride, colors=config.backend == "colored"), annotation.extents, symmetric, config)
-    placed = {m: annotation.frames[m].matrix for m in anchors}
+    placed = {m: annotation.frames[m].placed_matrix for m in anchors}  # the person's boxes, where a run moved them
     chaining = tracker  # the chains' tracker; the joint refinement and all after it use ``tracker`` (see step 4)
     nearly_round = not symmetric and _nearly_round(tracker, placed)
     if config.registration.facing and nearly_round:
@@ -605,6 +620,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = each_frame_untilted(tracker, ids, poses)
     elif not symmetric and (config.face_snap or config.hinge_snap or (nearly_round and config.body_axis_snap)):
         model = build_model(tracker, poses, config.max_global_frames, anchors)
+        # a round body's axis and foot say its tilt only where its wall is a surface of revolution (a mug's: its handle
+        # an outlier at the median); a box or a banana that passed the roundness test has neither
+        round_body = nearly_round and _revolves(tracker, model)
         # a box-like body (a camera): its faces fix the rotation better than the placed boxes' mean tilt (faces.py;
         # cameras pass the roundness test too, so the faces are asked first)
         snap = _snap_faces(tracker, model) if config.face_snap else None
@@ -613,7 +631,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if snap is None and config.hinge_snap and not nearly_round:
             snap = _snap_hinge(tracker, model)
             hinged = snap is not None
-        if snap is None and nearly_round and config.body_axis_snap:
+        if snap is None and round_body and config.body_axis_snap:
             # the placed boxes' mean tilt is off by their errors' mean; the body's axis, fitted to the model, is not
             # (refused where the fit is ill-conditioned)
             snap = _snap_body_axis(tracker, model)
@@ -622,7 +640,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = _centred_on_hinge(tracker, ids, poses, snap, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
-        if nearly_round and not hinged and not faced and config.frame_tilt:
+        if round_body and not hinged and not faced and config.frame_tilt:
             # ... and each frame's own tilt from its foot and inner bottom, as a bowl's (tilt.py): the snap turns all
             # frames alike, and is refused where the body's fit is ill-conditioned
             # (not measured on the suspect frames: a frame centimetres off measures a tilt that is not the object's,
@@ -641,7 +659,12 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
 
     # 6: the document, its poses at the colour instants (the registrations' are at the depth ones: sequences.timing)
     at_colour = at_colour_time(sequence, {f: poses[f] for f in ids})
-    kept = [placed[f] if f in placed and annotation.frames[f].source == "manual" and not config.update_manual else poses[f] for f in ids]
+    # an anchor whose box lies within the placement's tolerance of its estimate takes the estimate: the object frame
+    # is one, fitted to all the placed boxes (and snapped onto the shape), and each box is off by its own error
+    corrections = {f: pose_difference(placed[f], at_colour[f], symmetric) for f in placed}
+    follows = {f: results[f].ok and deg <= config.max_manual_correction_deg and metres <= config.max_manual_correction_m
+               for f, (deg, metres) in corrections.items()}
+    kept = [placed[f] if f in placed and not follows[f] else at_colour[f] for f in ids]
     jumps = dict(zip(ids, rotation_jumps(kept, symmetric)))
     out = annotation.copy()
     # each frame's share of points in its final box, on the workers (a crop each)
@@ -660,19 +683,13 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if result.ok:
             figures["in_box"] = in_box[frame_id]
         if frame_id in placed:
-            deg, metres = pose_difference(placed[frame_id], poses[frame_id], symmetric)
-            figures["manual_correction_deg"] = deg
-            figures["manual_correction_m"] = metres
+            figures["manual_correction_deg"], figures["manual_correction_m"] = corrections[frame_id]
         figures = document_figures(figures, config)
         if frame_id in placed and kept_by_a_person(annotation.frames[frame_id]):
             old = annotation.frames[frame_id]
             extra = {k: v for k, v in old.extra.items() if k not in ("flagged", "flag_reason", "flag_spin_only")}
             extra.update(figures)
-            if config.update_manual:
-                new = FramePose.from_matrix(at_colour[frame_id], old.source, extra)
-            else:
-                new = FramePose(old.position.copy(), old.orientation.copy(), old.source, extra)
-            out.frames[frame_id] = new
+            out.frames[frame_id] = anchored_pose(old, at_colour[frame_id], extra, follows[frame_id])
         else:
             out.frames[frame_id] = FramePose.from_matrix(at_colour[frame_id], "tracked", figures)
     flagged = {f for f in ids if out.frames[f].extra.get("flagged")}

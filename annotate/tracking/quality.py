@@ -18,9 +18,9 @@ Figures (stored as extra keys on each tracked frame of the document):
   the last frame that does); flagged beyond ``max_free_spin_run``, and at either end
   (consistency.free_spin_runs);
 - ``rotation_jump_deg``: the larger rotation to the previous and the next frame's final pose
-  (manual frames at their placed box; consistency.rotation_jumps);
-- for manual frames, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
-  is from the pose the rest of the sequence agrees on.
+  (an anchor that kept its placed box at that box; consistency.rotation_jumps);
+- for anchors, ``manual_correction_deg`` / ``manual_correction_m``: how far the placed box
+  is from the pose the rest of the sequence agrees on (the anchor takes that pose within the thresholds).
 """
 
 from __future__ import annotations
@@ -93,9 +93,9 @@ def pose_reasons(figures: dict, config) -> list[str]:
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
         reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:
-        reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose")
+        reasons.append(f"the placed box is {figures['manual_correction_deg']:.1f} deg off the tracked pose: it was kept (check it, or clear it)")
     if figures.get("manual_correction_m", 0.0) > config.max_manual_correction_m:
-        reasons.append(f"the placed box is {figures['manual_correction_m'] * 1000:.0f} mm off the tracked pose")
+        reasons.append(f"the placed box is {figures['manual_correction_m'] * 1000:.0f} mm off the tracked pose: it was kept (check it, or clear it)")
     return reasons
 
 

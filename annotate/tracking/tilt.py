@@ -78,7 +78,8 @@ def frame_tilt(points_obj: np.ndarray, normal_radius: float, cone_deg: float, mi
                plane_deg: float | None = None) -> np.ndarray | None:
     """The rotation vector (3,; rad, object frame, about x and z) that turns the normals of a frame's points
     ``points_obj`` (N, 3; object frame, m) lying within ``cone_deg`` of +-y onto y, or None where fewer than
-    ``min_normals`` lie there or the turn exceeds ``max_deg`` (a hand's palm, not a face of the object).
+    ``min_normals`` lie there or the turn exceeds ``max_deg`` (a hand's palm, or a curved patch seen from one side
+    whose normals pull the cone's mean towards its edge: not a face of the object).
 
     With ``plane_deg`` (a hinged body, a laptop), the whole rotation of faces.hinge_rotation instead: the base's
     normals onto +-y and those within ``plane_deg`` of the y-z plane (the lid's, the base's front and back edges')
