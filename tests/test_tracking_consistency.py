@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotate.tracking.config import TrackingConfig
-from annotate.tracking.consistency import chain_departures, flagged_gaps, free_spin_runs, rotation_jumps
+from annotate.tracking.consistency import chain_departures, flagged_gaps, flags_grown, free_spin_runs, rotation_jumps
 from annotate.tracking.quality import flag_reasons
 from annotate.tracking.quality import pose_difference
 from annotate.tracking.reconcile import best_switch, blend_chains, chain_frame_offsets
@@ -544,3 +544,22 @@ def test_a_manual_frame_whose_spin_is_free_does_not_set_the_object_frames_spin()
     np.testing.assert_allclose(free[:3, 3], dragged[:3, 3], atol=1e-12)
     # every manual frame free, or none: as before
     np.testing.assert_allclose(common_correction(tracked, placed, False, {"a", "b", "c"}), dragged, atol=1e-12)
+
+
+def test_flags_grow_from_a_flagged_frame_over_neighbours_whose_chain_figures_are_already_high():
+    order = [f"{k:07d}" for k in range(9)]
+    limits = {"chain_disagreement_deg": 5.0, "chain_disagreement_m": 0.01, "chain_departure_deg": 8.0}
+    degrees = [0.5, 0.9, 1.4, 3.1, 6.0, 2.8, 4.4, 1.0, 3.5]  # frame 4 crosses the limit; 3, 5, 6 are half-way there
+    figures = {f: {"chain_disagreement_deg": d, "chain_disagreement_m": 0.002} for f, d in zip(order, degrees)}
+    figures[order[2]]["chain_departure_deg"] = 3.0  # 37 % of its limit: stays
+    figures[order[8]]["chain_disagreement_m"] = 0.009  # high, but no flagged frame beside it
+    eligible = set(order) - {order[6]}  # frame 6 is an anchor: never flagged by its neighbours
+    grown = flags_grown(order, {order[4]}, eligible, figures, limits, 0.5, 2)
+    assert sorted(grown) == [order[3], order[5]]
+    assert grown[order[3]] == (order[4], "chain_disagreement_deg", 3.1, 5.0)
+    # an anchor in between stops the growth; without it, the flags run on to frame 6 and stop at 7 (1.0 deg)
+    grown = flags_grown(order, {order[4]}, set(order), figures, limits, 0.5, 2)
+    assert sorted(grown) == [order[3], order[5], order[6]] and grown[order[6]][0] == order[5]
+    # at most ``reach`` frames out: one step reaches frames 3 and 5 only
+    assert sorted(flags_grown(order, {order[4]}, set(order), figures, limits, 0.5, 1)) == [order[3], order[5]]
+    assert flags_grown(order, set(), set(order), figures, limits, 0.5, 2) == {}

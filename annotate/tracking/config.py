@@ -117,6 +117,9 @@ class TrackingConfig:
     colour_spin_correct: bool = True  #: ... and turn such a frame by the spin its colours prefer
     max_free_spin_run: int = 5  #: flag frames in a run of more frames whose geometry leaves the spin free, and in such a run at either end (consistency.free_spin_runs; 0: off)
     max_frame_rotation_deg: float = 20.0  #: a frame turned this far from a neighbour frame (consistency.py)
+    #: flag a tracked frame beside a flagged one (and so on outwards, at most max_flag_gap frames) whose chain
+    #: disagreement or departure reaches this share of its limit (consistency.flags_grown; 0: off)
+    flag_hysteresis: float = 0.5
     max_flag_gap: int = 2  #: flag tracked frames in a run of at most this many unflagged ones between flagged frames (consistency.flagged_gaps; 0: off)
     #: an anchor takes its estimated pose where that lies within this of the person's box (deg, m), else keeps the box
     #: and is flagged (twice the placement sigma)

@@ -95,3 +95,29 @@ def flagged_gaps(order: list[str], flagged: set[str], eligible: set[str], max_ga
             out.update({f: (order[last_flagged], frame_id) for f in gap})
         last_flagged = position
     return out
+
+
+def flags_grown(order: list[str], flagged: set[str], eligible: set[str], figures: dict[str, dict], limits: dict[str, float],
+                share: float, reach: int) -> dict[str, tuple[str, str, float, float]]:
+    """Frames of ``eligible`` next to a flagged frame (in ``order``; then next to those, in turn, at most ``reach``
+    frames out) whose figure named in ``limits`` reaches ``share`` of its flag limit: per frame, (the flagged neighbour,
+    the figure, its value, its limit). A hysteresis, as an edge detector's: a chain that goes astray crosses its limit
+    a frame or two after it left the object, and those frames' figures are already high."""
+    position = {f: k for k, f in enumerate(order)}
+    out: dict[str, tuple[str, str, float, float]] = {}
+    frontier = [f for f in order if f in flagged]
+    for _ in range(max(reach, 0)):
+        grown = []
+        for frame_id in frontier:
+            k = position[frame_id]
+            for neighbour in order[max(k - 1, 0) : k + 2]:
+                if neighbour in flagged or neighbour in out or neighbour not in eligible:
+                    continue
+                passed = [(key, float(figures[neighbour][key]), limit) for key, limit in limits.items()
+                          if figures[neighbour].get(key) is not None and float(figures[neighbour][key]) >= share * limit]
+                if passed:
+                    key, value, limit = max(passed, key=lambda p: p[1] / p[2])
+                    out[neighbour] = (frame_id, key, value, limit)
+                    grown.append(neighbour)
+        frontier = grown
+    return out

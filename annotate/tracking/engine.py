@@ -97,7 +97,7 @@ from sequences.reader import Sequence
 from sequences.timing import at_colour_time, at_depth_time
 
 from .config import TrackingConfig, scaled_to
-from .consistency import chain_departures, flagged_gaps, free_spin_runs, rotation_jumps
+from .consistency import chain_departures, flagged_gaps, flags_grown, free_spin_runs, rotation_jumps
 from .frames import FrameStore
 from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference, rotation_angle_deg
@@ -121,6 +121,13 @@ from annotate.workers import ordered_map
 
 Progress = Callable[[int, int], None]
 
+
+#: How a figure that flags a frame beside a flagged one reads (consistency.flags_grown).
+_GROWN_WORDS = {
+    "chain_disagreement_deg": lambda v: f"its two tracking chains disagree by {v:.1f} deg",
+    "chain_disagreement_m": lambda v: f"its two tracking chains disagree by {1000 * v:.0f} mm",
+    "chain_departure_deg": lambda v: f"its pose is {v:.1f} deg from both tracking chains",
+}
 
 #: Shorter ranges track on one process: forking and gathering cost about 30 ms per parallel step, which a short
 #: range does not win back.
@@ -694,6 +701,15 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             out.frames[frame_id] = FramePose.from_matrix(at_colour[frame_id], "tracked", figures)
     flagged = {f for f in ids if out.frames[f].extra.get("flagged")}
     tracked = {f for f in ids if out.frames[f].source == "tracked"}
+    if config.flag_hysteresis > 0:
+        limits = {"chain_disagreement_deg": config.max_chain_disagreement_deg, "chain_disagreement_m": config.max_chain_disagreement_m,
+                  "chain_departure_deg": config.max_chain_departure_deg}
+        grown = flags_grown(ids, flagged, tracked, {f: out.frames[f].extra for f in ids}, limits, config.flag_hysteresis, config.max_flag_gap)
+        for frame_id, (beside, key, value, limit) in grown.items():
+            extra = out.frames[frame_id].extra
+            extra["flagged"] = True
+            extra["flag_reason"] = f"beside flagged frame {beside}, {_GROWN_WORDS[key](value)}, {value / limit:.0%} of the limit"
+        flagged |= set(grown)
     for frame_id, (before, after) in flagged_gaps(ids, flagged, tracked, config.max_flag_gap).items():
         extra = out.frames[frame_id].extra
         extra["flagged"] = True
