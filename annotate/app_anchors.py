@@ -51,7 +51,7 @@ def engine_view(annotation: Annotation, kept: list[str]) -> Annotation:
 
 def restore_anchors(result: Annotation, annotation: Annotation, kept: list[str]) -> Annotation:
     """``result`` with each anchor's source as in ``annotation`` (the engine's figures about it kept), and its pose
-    the engine's where the engine kept the person's box beside it, else the pose it had."""
+    the engine's where the engine kept the person's box beside it or gave back that box, else the pose it had."""
     for frame_id in kept:
         before = annotation.frames[frame_id]
         after = result.frames.get(frame_id)
@@ -59,7 +59,8 @@ def restore_anchors(result: Annotation, annotation: Annotation, kept: list[str])
             result.frames[frame_id] = FramePose(before.position.copy(), before.orientation.copy(), before.source, dict(before.extra))
             continue
         extra = {**after.extra, **{k: v for k, v in before.extra.items() if k == "reviewed"}}
-        if on_the_track(before, after):
+        if on_the_track(before, after) or np.allclose(after.matrix, before.placed_matrix, atol=1e-9):
+            # on the track with the box beside it, or back at the person's box (beyond the tolerance)
             result.frames[frame_id] = FramePose(after.position.copy(), after.orientation.copy(), before.source, extra)
         else:
             extra = {k: v for k, v in extra.items() if k != PLACED_KEY}

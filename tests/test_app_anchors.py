@@ -135,7 +135,7 @@ def test_anchors_an_engine_posed_on_the_track_take_that_pose_and_the_next_run_an
     try:
         frames = _people_and_tracker(app, poses)
         ids = app.sequence.ids
-        seen = []
+        seen, follow = [], [True]
         turn = Rotation.from_euler("z", 1.0, degrees=True)
 
         def track_sequence(sequence, annotation, frames=None, progress=None, config=None):
@@ -146,7 +146,7 @@ def test_anchors_an_engine_posed_on_the_track_take_that_pose_and_the_next_run_an
                 start = FramePose.from_matrix(base.placed_matrix)  # an anchor's: the person's box
                 estimate = FramePose(start.position + [0.002, 0, 0], (turn * Rotation.from_quat(start.orientation)).as_quat()).matrix
                 if base.source == "manual":
-                    out.frames[frame_id] = anchored_pose(base, estimate, {"fitness": 0.9}, follows=True)
+                    out.frames[frame_id] = anchored_pose(base, estimate, {"fitness": 0.9}, follows=follow[0])
                 else:
                     out.frames[frame_id] = FramePose.from_matrix(estimate, "tracked", {"fitness": 0.8})
             return out
@@ -165,6 +165,15 @@ def test_anchors_an_engine_posed_on_the_track_take_that_pose_and_the_next_run_an
             assert doc.frames[frame_id].source == frames[frame_id].source
         assert doc.frames[ids[2]].extra["reviewed"] == "accepted"
         assert "3 took the pose the other frames agree on" in app.message.content
+        # a run that finds a box beyond its tolerance gives that box back: the document shows the person's box again
+        follow[0] = False
+        assert app.tracking.start_tracking(0, len(ids) - 1, wait=True)
+        doc = load_annotation(app.state.path)
+        for frame_id in (ids[0], ids[2], ids[4]):
+            np.testing.assert_allclose(doc.frames[frame_id].matrix, frames[frame_id].matrix, atol=1e-9)
+            assert "placed" not in doc.frames[frame_id].extra
+        assert "0 took the pose the other frames agree on" in app.message.content
+        follow[0] = True
         # a person who moves the box again makes that the box: the kept one goes
         app.state.set_frame(0)
         app.commit_box(frames[ids[0]].position + [0.0, 0.001, 0.0], frames[ids[0]].orientation)
