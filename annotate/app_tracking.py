@@ -216,8 +216,7 @@ class TrackingPanel:
         changed, new = pose_changes(document, after, taken, all_ids)
         flagged = sum(1 for f in taken if is_flagged(after.frames[f]))
         skipped = len(ids) - len(taken) - sum(1 for f in ids if f not in result.frames)
-        followed = sum(1 for f in kept if f in after.frames and f in document.frames and on_the_track(document.frames[f], after.frames[f])
-                       and f in taken)
+        followed = sum(1 for f in kept if f in taken and on_the_track(document.frames[f], after.frames[f]))
         kept_note = (f" The {len(kept)} box{'es' if len(kept) != 1 else ''} placed, refined or accepted stay the anchors; {followed} took the "
                      "pose the other frames agree on (each box kept beside it).")
         edited = f" {skipped} frames changed while it ran keep your boxes." if skipped else ""

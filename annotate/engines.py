@@ -59,16 +59,10 @@ def anchored_pose(old: "FramePose", estimate: "np.ndarray", extra: dict, follows
     kept under ``placed``; else the person's box. The box a person gives stays what every later run anchors on
     (FramePose.placed_matrix): one rigid object frame needs each placed box moved by its own placement error, or the
     poses jump at every anchor."""
-    import numpy as np  # here: the command lines import this module and start before NumPy loads
-
     from sequences.annotation import PLACED_KEY, FramePose
 
     extra = {k: v for k, v in extra.items() if k != PLACED_KEY}
-    kept = old.extra.get(PLACED_KEY)
-    if kept is not None:
-        person = FramePose(np.asarray(kept["position"], dtype=np.float64), np.asarray(kept["orientation"], dtype=np.float64), old.source)
-    else:
-        person = FramePose(old.position.copy(), old.orientation.copy(), old.source)
+    person = old.placed_box
     if not follows:
         return FramePose(person.position, person.orientation, old.source, extra)
     extra[PLACED_KEY] = {"position": [float(x) for x in person.position], "orientation": [float(x) for x in person.orientation]}

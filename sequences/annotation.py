@@ -72,13 +72,18 @@ class FramePose:
         return T
 
     @property
-    def placed_matrix(self) -> np.ndarray:
-        """4x4 object-to-camera box a person gave this frame: the box kept under ``placed`` where a tracking run posed
-        the frame on the track (engines.anchored_pose), else the pose itself."""
+    def placed_box(self) -> "FramePose":
+        """The box a person gave this frame (position and orientation only, a copy, source kept): the one kept under
+        ``placed`` where a tracking run posed the frame on the track (engines.anchored_pose), else the pose itself."""
         kept = self.extra.get(PLACED_KEY)
         if kept is None:
-            return self.matrix
-        return FramePose(np.asarray(kept["position"], dtype=np.float64), np.asarray(kept["orientation"], dtype=np.float64)).matrix
+            return FramePose(self.position.copy(), self.orientation.copy(), self.source)
+        return FramePose(np.asarray(kept["position"], dtype=np.float64), np.asarray(kept["orientation"], dtype=np.float64), self.source)
+
+    @property
+    def placed_matrix(self) -> np.ndarray:
+        """4x4 object-to-camera matrix of :attr:`placed_box`."""
+        return self.placed_box.matrix
 
     @classmethod
     def from_matrix(cls, T: np.ndarray, source: str = "manual", extra: dict | None = None) -> "FramePose":
@@ -151,6 +156,17 @@ def _vector(path: Path, where: str, value: Any, n: int) -> np.ndarray:
     return array
 
 
+def _box(path: Path, where: str, entry: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The ``position`` (3,) and ``orientation`` (4,, x y z w, made unit) of a box's mapping ``entry``; InputError
+    naming ``where`` for a wrong length, a non-number, a NaN, or a quaternion whose norm is not 1."""
+    position = _vector(path, f"{where} position", entry.get("position"), 3)
+    orientation = _vector(path, f"{where} orientation", entry.get("orientation"), 4)
+    norm = float(np.linalg.norm(orientation))
+    if not math.isclose(norm, 1.0, abs_tol=1e-3):
+        raise InputError(path, f"{where} orientation is not a unit quaternion (norm {norm:.4g}; order x, y, z, w)")
+    return position, orientation / norm
+
+
 def annotation_from_dict(data: Any, path: str | Path = "<document>", default_sequence: str = "") -> Annotation:
     """Validate a parsed document; raises InputError naming ``path`` and the problem."""
     path = Path(path)
@@ -188,11 +204,7 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
         where = f"frame {frame_id}"
         if not isinstance(entry, dict):
             raise InputError(path, f"{where} must be a mapping with position and orientation")
-        position = _vector(path, f"{where} position", entry.get("position"), 3)
-        orientation = _vector(path, f"{where} orientation", entry.get("orientation"), 4)
-        norm = float(np.linalg.norm(orientation))
-        if not math.isclose(norm, 1.0, abs_tol=1e-3):
-            raise InputError(path, f"{where} orientation is not a unit quaternion (norm {norm:.4g}; order x, y, z, w)")
+        position, orientation = _box(path, where, entry)
         if position[2] <= MIN_BOX_DEPTH:
             raise InputError(path, f"{where} box centre is at z = {position[2]:g} m: not in front of the camera (z must exceed {MIN_BOX_DEPTH} m)")
         source = entry.get("source", "manual")
@@ -203,13 +215,9 @@ def annotation_from_dict(data: Any, path: str | Path = "<document>", default_seq
             kept = extra[PLACED_KEY]
             if not isinstance(kept, dict):
                 raise InputError(path, f"{where} {PLACED_KEY} must be a mapping with position and orientation (the box a person placed)")
-            placed_position = _vector(path, f"{where} {PLACED_KEY} position", kept.get("position"), 3)
-            placed_orientation = _vector(path, f"{where} {PLACED_KEY} orientation", kept.get("orientation"), 4)
-            placed_norm = float(np.linalg.norm(placed_orientation))
-            if not math.isclose(placed_norm, 1.0, abs_tol=1e-3):
-                raise InputError(path, f"{where} {PLACED_KEY} orientation is not a unit quaternion (norm {placed_norm:.4g}; order x, y, z, w)")
-            extra[PLACED_KEY] = {"position": placed_position.tolist(), "orientation": (placed_orientation / placed_norm).tolist()}
-        frames[frame_id] = FramePose(position, orientation / norm, source, extra)
+            placed_position, placed_orientation = _box(path, f"{where} {PLACED_KEY}", kept)
+            extra[PLACED_KEY] = {"position": placed_position.tolist(), "orientation": placed_orientation.tolist()}
+        frames[frame_id] = FramePose(position, orientation, source, extra)
     extra = {k: v for k, v in data.items() if k not in ("sequence", "category", "symmetry", "extents", "frames")}
     return Annotation(sequence, category, symmetry, extents, frames, extra)
 
