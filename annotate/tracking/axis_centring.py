@@ -2,16 +2,10 @@
 
 Why: a mug's chains pair without the facing test (engine.py: with it they lost the spin where the handle was
 hidden), so a frame's outer wall pairs in part with the model's inner wall behind it, and its inner far wall with
-the outer wall behind that: each frame is pulled towards its camera (v5 mug seed 1, 3 manual frames: the chains left
-the frames 1.74 mm nearer their cameras, the median along their views; with the facing test 0.88 mm, but then the
-rotations failed elsewhere, below). Once the chains have done so, no later round undoes it (1.87 mm after the
-refinement): the model of all frames is then the mug with its wall thinned by twice the pull (every frame seen from
-outside, each shifted along its own view), and each frame fits that model as well as the truth (v5 mug seed 1, 3
-manual frames off by up to 3 deg: outer wall's radius 41.48 -> 39.91 mm, inner 37.41 -> 39.60 mm, a wall of 4.1 mm
-thinned to 0.3). Measured along each frame's view, the v5 mugs' frames (seeds 0-3 in the issue's setting, with 3
-manual frames off by up to 3 and 5 deg, and unseen seeds 4-7) sat 0.2-2.2 mm nearer their camera than the truth in
-15 of 16 runs (the median per run), and the data do not lean: the frames' points at their true poses lie within
-0.01 mm of the true mesh along the rays (median).
+the outer wall behind that: each frame is pulled towards its camera by a millimetre or two. Once the chains have done
+so, no later round undoes it: the model of all frames is then the mug with its wall thinned by twice the pull (every
+frame seen from outside, each shifted along its own view), and each frame fits that model as well as the truth. The
+data themselves do not lean: a frame's points at its true pose lie on the true mesh along the rays.
 
 A mug's body is a surface of revolution: the normal lines of its wall, outer and inner, all meet its axis. So each
 frame's own points place the axis in that frame's object frame (symmetry.fit_axis_point, the direction held at the
@@ -19,24 +13,12 @@ box's y), from the wall alone: the handle (the points within ``handle_clear_deg`
 what lies off the wall (a hand's fingers, further than ``band_m`` from the body's radius), and the wall seen nearly
 edge-on (normals more than ``max_view_deg`` from the direction to the camera) are left out. The last matters: depth
 noise runs along the rays, which there run along the surface, and tilts those normals towards the camera, so that
-their lines meet nearer the camera than the axis (v5 mugs: 0.8-1.6 mm in 12 of 16 runs; within 60 deg, -0.4 to +0.2
-mm in 15; tests/test_tracking_axis_centring.py: 1.1 mm, and 0.02 mm within 60 deg). Each frame is moved by the median
-of the offsets measured within ``window`` frames of it, square to the axis, so that its axis lands on the
-reference's (the model of the trusted frames). The step runs before the common correction (engine step 5), which then
-moves all frames alike onto the placed boxes.
-
-Measured (bench_tracking, v5 mugs, HEAD before -> after, with the suspect frames' tilts left out, engine.py): box-centre
-medians summed over seeds 0-3, the issue's setting 6.85 -> 4.77 mm, 3 manual frames off by up to 3 deg 10.22 -> 7.28
-(seed 1 3.53 -> 1.80, the last check failing in the issue's own settings), off by up to 5 deg 9.68 -> 7.29 (seed 1
-3.29 -> 1.57), unseen seeds 4-7 5.88 -> 5.81; the frames' median lean along their views -0.2 to -2.2 mm -> -0.95 to
-+0.55 mm; rotation medians summed over the 16 runs 16.66 -> 16.91 deg, p90s 82.3 -> 81.3 deg; failing mug checks 5 -> 3
-(3 manual frames off by 5 deg, seed 3's median and p90, which failed before; unseen seed 4's p90, all its frames
-flagged). Cost: a crop and normals per frame, 4-6 ms (mug seeds 1 and 2, 2 cores).
-
-Measured and not kept: the same without the view limit (the lean above left in): centres summed over the four
-settings 32.6 -> 31.9 mm, but unseen seeds 5 and 7 worse (1.10 -> 1.96, 1.16 -> 2.06 mm). The mugs' chains with the
-facing test instead: centres summed 32.6 -> 28.5 mm, but failing mug checks 5 -> 6 (p90s: the issue's setting seed 2
-2.34 -> 3.11 deg, unseen seed 7 2.68 -> 3.76 deg; 3 manual frames, seed 0's median 0.74 -> 1.73 deg).
+their lines meet nearer the camera than the axis (tests/test_tracking_axis_centring.py). Each frame is moved by the
+median of the offsets measured within ``window`` frames of it, square to the axis, so that its axis lands on the
+reference's (the model of the trusted frames). Nothing is moved where the model's wall is no surface of revolution
+about the axis its normal lines meet (estimator.model.is_revolution: a box that passed the roundness test). The step
+runs before the common correction (engine step 5), which then moves all frames alike onto the placed boxes. Cost: a
+crop and normals per frame, a few milliseconds.
 """
 
 from __future__ import annotations

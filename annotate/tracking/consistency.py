@@ -1,11 +1,9 @@
 """Checks of the final poses against independent evidence: the chains they came from, and the motion.
 
 The joint refinement and the smoothing replace the chains' poses; a frame whose final pose left
-both chains far behind has no witness left. Measured on a v5 mug (seed 1): while the mug turned
-its bottom to the camera, the refinement slid 40 frames 50-170 deg about the bottom's normal
-(fitness 0.8-1.0: a disc fits any spin), while the forward chain from one manual frame and the
-backward chain from the next stayed within 5 deg of the truth; the restarts of
-refine.recheck_disagreements settled on the same wrong pose and cleared their flags.
+both chains far behind has no witness left. A disc (a mug's bottom turned to the camera) fits any spin
+about its normal: the refinement can slide a stretch of frames about it, fitting well, while the chains
+that reached those frames stayed near the object's pose.
 """
 
 from __future__ import annotations
@@ -56,11 +54,8 @@ def free_spin_runs(order: list[str], free: set[str], pinned: set[str]) -> dict[s
     fixes the spin). Frames in ``pinned`` (manual frames) end a run even when their geometry is free.
 
     Inside a run the spin comes only from the smoothing's interpolation between the frames at its ends,
-    and beyond the last frame that fixes it, from a one-sided extrapolation (smooth.py). Measured on the
-    v5 mugs (seeds 0-3, 4 manual frames off by up to 3 deg): runs of 1-3 frames between fixing frames
-    stayed within 3 deg; a run of 7 frames reached 6 deg and one of 18 frames 10.5 deg; the three free
-    frames before the first manual frame of seed 3 were 5.9, 10.3 and 13.0 deg off (the hand turned
-    the mug 6 deg per frame), with nothing else flagging the latter two.
+    and beyond the last frame that fixes it, from a one-sided extrapolation (smooth.py): the error grows
+    with the run's length, and fastest on the one-sided runs, where a hand turns the object on unseen.
     """
     out: dict[str, tuple[int, bool]] = {}
     run: list[str] = []
@@ -80,8 +75,7 @@ def flagged_gaps(order: list[str], flagged: set[str], eligible: set[str], max_ga
     eligible) with a flagged frame right before and right after it: those two flagged frames.
 
     The smoothing and the refinement's neighbours tie a frame's pose to the frames around it, so a frame or two
-    between flagged runs leans on suspect poses. Measured on a v5 mug (seed 1, 3 manual frames off by up to
-    5 deg): frames 38-39 were 10.1 and 8.7 deg off, unflagged, between flagged frames 30-37 and 40-45.
+    between flagged runs leans on suspect poses.
     """
     out: dict[str, tuple[str, str]] = {}
     if max_gap <= 0:
