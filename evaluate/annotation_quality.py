@@ -187,15 +187,22 @@ def mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def aligned_points(points: np.ndarray, start: np.ndarray, target: np.ndarray, reach: float = 0.01) -> np.ndarray:
-    """``points`` moved by ``start`` (4x4), then by point-to-point ICP (Open3D) onto ``target`` with correspondences within
-    ``reach`` metres: the reconstruction's shape compared without what remains of its poses' common error."""
+def alignment(points: np.ndarray, start: np.ndarray, target: np.ndarray, reach: float = 0.01) -> np.ndarray:
+    """The 4x4 transform that takes ``points`` onto ``target``: ``start``, then point-to-point ICP (Open3D) with
+    correspondences within ``reach`` metres (what remains of the poses' common error, removed)."""
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points @ start[:3, :3].T + start[:3, 3]))
     goal = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
     result = o3d.pipelines.registration.registration_icp(source, goal, reach, np.eye(4),
                                                          o3d.pipelines.registration.TransformationEstimationPointToPoint(),
                                                          o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30))
-    return np.asarray(source.transform(result.transformation).points)
+    return result.transformation @ start
+
+
+def aligned_points(points: np.ndarray, start: np.ndarray, target: np.ndarray, reach: float = 0.01) -> np.ndarray:
+    """``points`` moved by :func:`alignment` onto ``target``: the reconstruction's shape compared without what remains
+    of its poses' common error."""
+    T = alignment(points, start, target, reach)
+    return points @ T[:3, :3].T + T[:3, 3]
 
 
 #: The box faces in the order of reconstruct.seen.BOX_FACES (object frame, ShapeNet axes).
@@ -207,16 +214,22 @@ def shape_scores(mesh, poses: dict[str, np.ndarray], surface: TrueSurface, truth
     """The reconstruction's shape against the true surface, aligned (:func:`mean_transform` of its frames' T_true^-1
     T_pose, then :func:`aligned_points`): F-score, precision and recall at ``threshold``, overall and on the observed
     surface (recall over the observed true samples; precision over the reconstruction's samples whose nearest true
-    sample is an observed one); and per box face (:data:`FACE_NAMES`) how far the aligned reconstruction's extreme
+    sample is an observed one; this pair after an alignment fitted on those samples alone); and per box face (:data:`FACE_NAMES`) how far the aligned reconstruction's extreme
     lies outside the truth's (mm; negative: inside)."""
     start = mean_transform([np.linalg.inv(truth_poses[f]) @ T for f, T in poses.items() if f in truth_poses])
     points = sample_surface(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
     aligned = aligned_points(points, start, surface.index.points)
     true_hit, hit = surface.index.hits(aligned, threshold)
     overall = fscore_from_hits(true_hit, hit)
-    nearest = surface.index.tree.query(aligned)[1]
-    on_observed = surface.observed[nearest]
-    observed = fscore_from_hits(true_hit[surface.observed], hit[on_observed]) if surface.observed.any() and on_observed.any() else None
+    observed = None
+    on_observed = surface.observed[surface.index.tree.query(aligned)[1]]
+    if surface.observed.any() and on_observed.any():
+        # the observed surface is judged aligned on itself: what was guessed where no frame looked must not move it
+        T = alignment(points[on_observed], start, surface.index.points[surface.observed])
+        moved = points @ T[:3, :3].T + T[:3, 3]
+        true_hit, hit = surface.index.hits(moved, threshold)
+        on_observed = surface.observed[surface.index.tree.query(moved)[1]]
+        observed = fscore_from_hits(true_hit[surface.observed], hit[on_observed]) if on_observed.any() else None
     low, high = aligned.min(axis=0) - surface.index.points.min(axis=0), aligned.max(axis=0) - surface.index.points.max(axis=0)
     faces = {name: float(value * 1000) for name, value in zip(FACE_NAMES, (-low[1], high[1], -low[0], high[0], -low[2], high[2]))}
     return {

@@ -140,6 +140,10 @@ VOXEL_MARGIN = 0.5
 
 #: The annotated box bounds what no frame saw inside the object, grown by this share of its sides (a box placed a little small).
 BOX_PRIOR_SLACK = 0.05
+#: Nothing farther outside the annotated box than this share of its sides is object, measured or not: a hand that
+#: held still, or a neighbour the object touches (a box on a block), is measured there in every frame and never seen
+#: free. The suite's boxes are placed up to 8 % too small; the grid's margin (carving.default_margin) is wider still.
+BOX_BOUND_SLACK = 0.10
 
 
 def reconstruct_sequence(
@@ -176,7 +180,8 @@ def reconstruct_sequence(
     ``voxel_size`` and ``margin`` (per side, around the annotated box) in metres; ``k`` votes threshold
     (default :func:`carving.choose_k`). For ``symmetry: y`` the solid of revolution fills in what no frame
     observed where the measured surface is round (:mod:`reconstruct.revolution`). ``box_prior``: space no
-    frame saw just behind a measured surface counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK). ``support_plane``: the
+    frame saw just behind a measured surface counts as object only inside the annotated box (grown by BOX_PRIOR_SLACK),
+    and nothing beyond that box grown by BOX_BOUND_SLACK does. ``support_plane``: the
     plane a static object stands on, measured beside it in every frame, is not object (:mod:`reconstruct.support`). ``evidence_hull``
     (off by default, never for symmetry y): drop the unseen space no measured surface bounds
     (:mod:`reconstruct.evidence`). ``voxel_margin`` (half voxel diagonals in the free-space tolerance): None for
@@ -238,6 +243,8 @@ def reconstruct_sequence(
     elif behind is not None and hull:
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, behind)
+    if box_prior:
+        occupied = occupied & carving.inside_box(grid, annotation.extents * (1 + BOX_BOUND_SLACK))
     if behind is not None and box_prior:
         # space no frame saw inside the object is object only inside the annotated box: the grid's margin (for boxes
         # placed too small) would otherwise stay solid wherever no frame looked, or looked too rarely to carve

@@ -164,3 +164,19 @@ def test_revolution_fscore_tells_round_shapes_from_the_others():
     flat.apply_scale([1.0, 1.0, 0.5])  # 8 cm by 4 cm across
     # a square 8 cm across turned 30 or 60 deg: its corners stand up to 1.5 cm off the faces they turn onto
     assert revolution_fscore(square) < 0.8 and revolution_fscore(flat) < 0.6
+
+
+def test_observed_scores_ignore_what_was_guessed_elsewhere():
+    """A reconstruction whose front face is exact but whose unseen sides are guessed 1 cm too wide: the observed
+    surface's recall stays whole (aligned on the whole shape, it slid 1 cm sideways onto the true sides: 0.23)."""
+    cube = _cube()
+    T = _pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.6))  # the camera sees the -z face only
+    dense = trimesh.sample.sample_surface(cube, 60000, seed=1)[0]
+    surface = true_surface(cube, [(T, dense[np.abs(dense[:, 2] + 0.05) < 1e-9] + T[:3, 3])])
+    guess = trimesh.creation.box(extents=[0.12, 0.12, 0.11])
+    guess.apply_translation([0.01, 0.01, 0.005])  # its -z face on the true one, reaching 2 cm past it along +x and +y
+    scores = shape_scores(guess, {"0": T}, surface, {"0": T})
+    assert scores["observed_recall5"] > 0.99
+    # the front face's 2 cm overhang (about a sixth of its samples, nearest to the observed edge) is wrong, and counted
+    assert 0.8 < scores["observed_precision5"] < 0.9
+    assert scores["face_errors_mm"]["+x"] > 15.0 and scores["shape_f5"] < 0.5

@@ -526,6 +526,23 @@ def test_box_scene_is_reconstructed_to_the_millimetre(box_scene):
     assert rec.report["frames_used"] == 30 and "carve" in calls
 
 
+def test_nothing_beyond_the_box_grown_by_its_slack_is_object(tmp_path):
+    """A hand that never lets go (a sphere fixed against the cube's +x face, 3 cm in radius) is measured in every frame
+    and never seen free: only the annotated box tells it from the object. Without the bound it fills the grid's margin
+    (15 mm beyond the face); with it, at most the box's 10 % slack (5 mm)."""
+    from reconstruct.pipeline import BOX_BOUND_SLACK
+
+    hand = trimesh.creation.icosphere(3, radius=0.03)
+    hand.apply_translation([0.08, 0.0, 0.0])
+    scene = write_scene(tmp_path / "held_0001", trimesh.creation.box([0.1, 0.1, 0.1]), n_frames=20, extra=hand)
+    sequence, annotation = _load(scene)
+    bounded = reconstruct_sequence(sequence, annotation, voxel_size=0.004, support_plane=False)
+    loose = reconstruct_sequence(sequence, annotation, voxel_size=0.004, support_plane=False, box_prior=False)
+    assert loose.extents[0] == pytest.approx(0.1 + 0.015, abs=0.004)  # the hand, out to the grid's edge
+    assert bounded.extents[0] == pytest.approx(0.1 * (1 + BOX_BOUND_SLACK / 2), abs=0.004)  # out to the bound: 5 mm
+    np.testing.assert_allclose(bounded.extents[1:], [0.1, 0.1], atol=0.004)  # the other sides, untouched
+
+
 def test_one_thread_gives_the_reconstruction_of_two(box_scene):
     """A batch's unit reconstructs on one thread (ahead=False: no frame decoded and prepared ahead on a second one):
     the same mesh, box, poses and surface labels, bit for bit."""
