@@ -25,7 +25,7 @@ ABOVE = (
     ("chains_jumped_deg", "max_chain_disagreement_deg"), ("chains_jumped_m", "max_chain_disagreement_m"),
     ("chain_departure_deg", "max_chain_departure_deg"), ("rotation_jump_deg", "max_frame_rotation_deg"),
     ("manual_correction_deg", "max_manual_correction_deg"), ("manual_correction_m", "max_manual_correction_m"),
-    ("colour_spin_deg", "max_colour_spin_deg"), ("inlier_rmse", "max_inlier_rmse"),
+    ("inlier_rmse", "max_inlier_rmse"),
     ("refine_rejected_deg", "max_refine_step_deg"), ("refine_rejected_m", "max_refine_step_m"),
 )
 #: ... and below one: smaller is worse.

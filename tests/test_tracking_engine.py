@@ -154,7 +154,7 @@ def test_a_large_body_gets_its_own_count_of_fine_rounds(scene, monkeypatch):
 
 def test_progress_counts_up_by_one_to_its_total_through_the_checks(scene):
     root, _, annotation = scene
-    for config in (TrackingConfig(), TrackingConfig(slide_check=False, colour_spin_check=False, stretch_spin_check=False)):
+    for config in (TrackingConfig(), TrackingConfig(slide_check=False, stretch_spin_check=False)):
         progress = []
         track_sequence(open_sequence(root), annotation, config=config, progress=lambda d, t: progress.append((d, t)))
         done, total = [d for d, _ in progress], progress[-1][1]

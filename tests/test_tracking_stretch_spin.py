@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_tracking_render import render_tracker
 
-from annotate.tracking.colour_spin import spin_matrix
+from annotate.tracking.free_spin import spin_matrix
 from annotate.tracking.refine import refine_all
 from annotate.tracking.stretch_spin import stretch_spins
 from annotate.tracking.tracker import FrameResult

@@ -112,9 +112,6 @@ class TrackingConfig:
     min_slide_m: float = 0.005  #: ... at a shift of at least this (m)
     max_slide_m: float = 0.04  #: ... shifts tried up to this far either way, a best one within 5 mm of that end not taken (m; the crop is widened by 3/4 of it)
     slide_path_tolerance: float = 0.002  #: ... nor one taking the frame this much further (m) from the midpoint of its neighbours (then flagged)
-    colour_spin_check: bool = True  #: objects without symmetry: check a spin the geometry leaves free against the colours (colour_spin.py)
-    max_colour_spin_deg: float = 7.0  #: ... and flag a frame whose colours match this far spun clearly better
-    colour_spin_correct: bool = True  #: ... and turn such a frame by the spin its colours prefer
     max_free_spin_run: int = 5  #: flag frames in a run of more frames whose geometry leaves the spin free, and in such a run at either end (consistency.free_spin_runs; 0: off)
     max_frame_rotation_deg: float = 20.0  #: a frame turned this far from a neighbour frame (consistency.py)
     #: flag a tracked frame beside a flagged one (and so on outwards, at most max_flag_gap frames) whose chain

@@ -55,10 +55,9 @@
    and the lid's top, from the faces it sees (height.py: for the same reason, they kept their manual frames' y);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
-   symmetry, a spin about the axis that the geometry leaves free checked against the colours and
-   turned to the spin they prefer (colour_spin.py: a mug with its handle hidden, carried off by
-   both chains alike; done before the common frame, after the joint refinement and the smoothing); a near-round
-   body whose spin is free somewhere has its suspect and free-spin frames take the mean spin about its axis of the
+   symmetry, the frames whose geometry leaves the spin about the axis free found (free_spin.py: a mug with
+   its handle hidden, carried by both chains alike on the motion; done before the common frame, after the joint
+   refinement and the smoothing); a near-round body whose spin is free somewhere has its suspect and free-spin frames take the mean spin about its axis of the
    frames within +-2 (spin_window.py: they were registered one at a time, and jitter about the axis);
    frames in a long run of such free-spin frames, or beyond the last frame that fixes the spin, are
    flagged: only the motion carries their spin (consistency.free_spin_runs).
@@ -105,7 +104,7 @@ from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .axis_centring import each_frame_on_axis
 from .centring import centre_offsets, centred, extent_along
-from .colour_spin import ColourSpinCheck, spin_matrix
+from .free_spin import FreeSpinCheck
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
 from .handle import onto_handle_plane
 from .height import centred_heights
@@ -385,12 +384,12 @@ def _lid_side(tracker: Tracker, model: ObjectModel, snap: np.ndarray) -> float:
 
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
     """Whether the model of the placed frames, spun by 10 deg about its fitted axis, still fits itself
-    (colour_spin.ColourSpinCheck.round: a mug's body; not a laptop or a camera)."""
+    (free_spin.FreeSpinCheck.round: a mug's body; not a laptop or a camera)."""
     points, _ = build_model(tracker, placed, len(placed), free_space=False).points(1)
     if len(points) < 30:
         return False
     try:
-        return ColourSpinCheck(tracker, points).round()
+        return FreeSpinCheck(tracker, points).round()
     except ValueError:
         return False
 
@@ -402,7 +401,7 @@ def _stretch_spins(tracker: Tracker, results: dict[str, FrameResult], anchors: l
     model = build_model(tracker, trusted, tracker.config.max_global_frames, [a for a in anchors if a in trusted])
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
-        check = ColourSpinCheck(tracker, points)
+        check = FreeSpinCheck(tracker, points)
     except ValueError:
         return results
     free = [f in trusted and check.spin_free_at(f, trusted[f]) for f in results]
@@ -415,20 +414,15 @@ def _stretch_spins(tracker: Tracker, results: dict[str, FrameResult], anchors: l
     return {f: FrameResult(r.pose, r.ok, {**r.figures, "stretch_spin_deg": turned[f]}) if f in turned else r for f, r in results.items()}
 
 
-def colour_spins(tracker: Tracker, results: dict[str, FrameResult], model: ObjectModel) -> tuple[dict[str, tuple[float, np.ndarray]], tuple[np.ndarray, np.ndarray] | None]:
-    """Per frame whose geometry leaves the spin about the object's axis free: the spin (degrees) its colours
-    prefer against ``model`` (of the trusted frames, object frame; colour_spin.py) and the 4x4 object-frame
-    spin S (``pose @ S`` is the pose the colours prefer); and the axis they spin about (unit direction, point;
-    object frame), None where no axis could be fitted."""
+def free_spin_frames(tracker: Tracker, results: dict[str, FrameResult], model: ObjectModel) -> tuple[set[str], tuple[np.ndarray, np.ndarray] | None]:
+    """The frames whose geometry leaves the spin about the axis of ``model`` (of the trusted frames, object frame)
+    free (free_spin.py), and that axis (unit direction, point; object frame), None where none could be fitted."""
     points, _ = model.points(min_hits_for(model, tracker.config))
     try:
-        check = ColourSpinCheck(tracker, points)
+        check = FreeSpinCheck(tracker, points)
     except ValueError:
-        return {}, None
-    poses = {f: r.pose for f, r in results.items() if r.ok}
-    # a suspect frame's pose is doubtful (its chains disagreed): its colours place no model colour
-    spins = check.run(poses, {f: r.figures.get("fitness", 0.0) for f, r in results.items() if r.ok and not suspect(r, tracker.config)})
-    return {f: (deg, spin_matrix(check.axis, check.point, deg)) for f, deg in spins.items()}, (check.axis, check.point)
+        return set(), None
+    return set(check.free_frames({f: r.pose for f, r in results.items() if r.ok})), (check.axis, check.point)
 
 
 def track_sequence(
@@ -551,9 +545,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         ends.append(ids[a_idx[0] + 1 :: -1])
     if a_idx[-1] < len(ids) - 1 and a_idx[-1] > 0:
         ends.append(ids[a_idx[-1] - 1 :])
-    check_colours = not symmetric and config.colour_spin_check
-    # one model of the trusted frames judges the second chains, the suspect frames, the slides and the colours
-    trusted = trusted_model(tracker, results, anchors) if ends or check_colours or config.slide_check else None
+    check_spin = not symmetric  # a symmetric object's spin is no error
+    # one model of the trusted frames judges the second chains, the suspect frames, the slides and the free spins
+    trusted = trusted_model(tracker, results, anchors) if ends or check_spin or config.slide_check else None
     results = recheck_single_chains(tracker, results, ends, anchors, trusted)
     # the frames whose chains disagreed, against the model that holds none of their own points (refine.reregister_suspects)
     results = reregister_suspects(tracker, results, trusted, set(placed)) if trusted is not None else results
@@ -570,22 +564,18 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             results[frame_id] = FrameResult(r.pose, r.ok, {**r.figures, "slide_rejected_m": metres})
         else:
             results[frame_id] = FrameResult(shifted(r.pose, shift), r.ok, {**r.figures, "slide_m": metres})
-    # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike: the colours check it
-    spins, spin_axis = colour_spins(tracker, results, trusted) if check_colours and trusted is not None else ({}, None)
-    if config.colour_spin_correct:
-        # not a manual frame: the object frame is fitted to the placed boxes through their refined poses (step 5),
-        # and a turn of one of those moves every frame
-        results = {f: FrameResult(r.pose @ spins[f][1], r.ok, r.figures) if f in spins and spins[f][0] and f not in placed else r for f, r in results.items()}
-    if nearly_round and spins and spin_axis is not None and config.spin_window > 0:
-        # where the shape leaves the spin free somewhere (a mug, not a camera: the colour check found free frames),
-        # each suspect or free-spin frame took its spin from its own registration and colours, one frame at a time:
-        # consecutive frames jitter about the axis, which the hand turns smoothly (spin_window.py)
-        chosen = [f not in placed and (f in spins or suspect(results[f], config)) for f in ids]
-        # about the axis the colours spun the frames about (the body's, fitted to the model of the trusted frames)
+    # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike, on the motion alone
+    free, spin_axis = free_spin_frames(tracker, results, trusted) if check_spin and trusted is not None else (set(), None)
+    if nearly_round and free and spin_axis is not None and config.spin_window > 0:
+        # where the shape leaves the spin free somewhere (a mug, not a camera), each suspect or free-spin frame took
+        # its spin from its own registration, one frame at a time: consecutive frames jitter about the axis, which
+        # the hand turns smoothly (spin_window.py)
+        chosen = [f not in placed and (f in free or suspect(results[f], config)) for f in ids]
+        # about the body's axis, fitted to the model of the trusted frames
         steadied = windowed_spins([results[f].pose for f in ids], chosen, config.spin_window, *spin_axis, [results[f].ok for f in ids])
         results = {f: FrameResult(p, results[f].ok, results[f].figures) for f, p in zip(ids, steadied)}
     # where the spin is free and so is that of its neighbours, only the motion carries it: how long such a run is
-    runs = free_spin_runs(ids, set(spins), set(anchors))
+    runs = free_spin_runs(ids, free, set(anchors))
     # the final pose must stay near one of the chains it came from (both in anchor 0's object frame)
     # (before the first and after the last manual frame, one chain ran: its pose is the only witness)
     single = {f: (chained[f],) for f in ids if f not in chain_poses and f not in placed}
@@ -602,7 +592,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if not (config.face_snap and _snap_faces(tracker, body) is not None):
             target = body.target(min_hits_for(body, config))
             poses = each_frame_on_axis(tracker, ids, poses, target.points, np.asarray(target.cloud.normals))
-    correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric, {m for m in anchors if m in spins})
+    correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric, {m for m in anchors if m in free})
     poses = {f: p @ correction for f, p in poses.items()}
     if symmetric and config.symmetry_snap:
         model = build_model(tracker, poses, config.max_global_frames, anchors)
@@ -683,8 +673,6 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         if frame_id in departures:
             figures["chain_departure_deg"], figures["chain_departure_m"] = departures[frame_id]
         figures["rotation_jump_deg"] = float(jumps[frame_id])
-        if frame_id in spins:
-            figures["colour_spin_deg"] = spins[frame_id][0]
         if frame_id in runs:
             figures["free_spin_run"], figures["free_spin_end"] = runs[frame_id]
         if result.ok:

@@ -9,11 +9,8 @@ Figures (stored as extra keys on each tracked frame of the document):
   chain on the model of all frames lands from the final pose (refine.recheck_single_chains);
 - ``chain_departure_deg`` / ``chain_departure_m``: between two manual frames, how far the final
   pose is from the nearer of the two chains' poses (consistency.chain_departures);
-- ``colour_spin_deg``: objects without symmetry, frames whose geometry leaves the spin about the
-  axis free (a mug with its handle hidden): the spin (deg) at which the colours match the model
-  clearly better than at the tracked pose, 0 when none does; the frame is turned by it
-  (``colour_spin_correct``) and flagged beyond ``max_colour_spin_deg`` (colour_spin.py);
-- ``free_spin_run`` / ``free_spin_end``: frames whose geometry leaves the spin free: how many such
+- ``free_spin_run`` / ``free_spin_end``: objects without symmetry, frames whose geometry leaves the spin
+  about the axis free (a mug with its handle hidden; free_spin.py): how many such
   frames in a row hold it, and whether no frame beyond that run fixes the spin (before the first or after
   the last frame that does); flagged beyond ``max_free_spin_run``, and at either end
   (consistency.free_spin_runs);
@@ -103,8 +100,6 @@ def spin_reasons(figures: dict, config) -> list[str]:
     """The reasons that doubt only the spin about the axis, in frames whose shape leaves it free (a mug's
     handle hidden): the rest of the pose, and so the free space the frame sees, is as good as any other's."""
     reasons = []
-    if abs(figures.get("colour_spin_deg", 0.0)) > config.max_colour_spin_deg:
-        reasons.append(f"turned {figures['colour_spin_deg']:.1f} deg about the axis to match its colours (its shape leaves that spin free)")
     if config.max_free_spin_run > 0 and figures.get("free_spin_run", 0) > 0:
         if figures.get("free_spin_end"):
             reasons.append("its shape leaves the spin about the axis free, and no frame beyond it fixes that spin")

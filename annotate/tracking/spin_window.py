@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .colour_spin import spin_matrix
+from .free_spin import spin_matrix
 
 
 def windowed_spins(poses: list[np.ndarray], selected: list[bool], half_window: int, axis: np.ndarray, point: np.ndarray,

@@ -45,7 +45,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .colour_spin import spin_matrix
+from .free_spin import spin_matrix
 from .refine import build_model, min_hits_for, suspect
 from .tracker import FrameResult, Tracker
 from annotate.workers import ordered_map
