@@ -57,8 +57,8 @@
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, the frames whose geometry leaves the spin about the axis free found (free_spin.py: a mug with
    its handle hidden, carried by both chains alike on the motion; done before the common frame, after the joint
-   refinement and the smoothing); a near-round body whose spin is free somewhere has its suspect and free-spin frames take the mean spin about its axis of the
-   frames within +-2 (spin_window.py: they were registered one at a time, and jitter about the axis);
+   refinement and the smoothing); a near-round body whose spin is free somewhere has its suspect and free-spin
+   frames take the mean spin about its axis of the frames within +-2 (spin_window.py: they were registered one at a time, and jitter about the axis);
    frames in a long run of such free-spin frames, or beyond the last frame that fixes the spin, are
    flagged: only the motion carries their spin (consistency.free_spin_runs).
 
