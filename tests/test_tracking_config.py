@@ -31,10 +31,3 @@ def test_a_large_body_still_grows_its_voxel():
 def test_a_negative_shallow_voxel_is_refused():
     with pytest.raises(ValueError, match="shallow_voxel_size"):
         TrackingConfig(shallow_voxel_size=-0.001)
-
-
-def test_the_axis_centrings_settings_are_checked():
-    for bad in ({"axis_max_view_deg": 0.0}, {"axis_max_view_deg": 120.0}, {"axis_window": -1}, {"min_axis_frames": 0}, {"min_axis_points": 5}):
-        with pytest.raises(ValueError):
-            TrackingConfig(**bad)
-    assert TrackingConfig(axis_window=0, min_axis_frames=1).axis_window == 0

@@ -61,13 +61,6 @@ class TrackingConfig:
     body_axis_snap: bool = True  #: near-round objects without symmetry (a mug): turn the box's y onto the body's axis fitted to the model, about the box centre
     handle_plane_centring: bool = True  #: ... and move the box centre square across onto the plane of that axis and the handle (handle.py)
     max_handle_shift_m: float = 0.01  #: ... by at most this (m; further means the plane is not the box's)
-    frame_axis_centring: bool = True  #: near-round objects without symmetry (a mug): before the common correction, move each frame square to its y so that its own wall's axis lands on the model's (axis_centring.py)
-    axis_band_m: float = 0.006  #: ... the wall: points within this of the body's radius (m)
-    axis_handle_clear_deg: float = 40.0  #: ... and further than this from the handle's direction about the axis
-    axis_max_view_deg: float = 60.0  #: ... the wall points whose normals lie within this of the direction to the camera (grazing ones lean towards it)
-    min_axis_points: int = 50  #: ... a frame measures its axis with at least this many wall points
-    axis_window: int = 6  #: ... and moves by the median of the offsets measured within this many frames either side
-    min_axis_frames: int = 3  #: ... where at least this many frames there measure one
     max_axis_offset_m: float = 0.01  #: ... by at most this (m; further means the wall is not the body's)
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
     face_snap: bool = True  #: box-like objects (a camera): turn the box onto the model's faces, about its centre (faces.py)
@@ -133,10 +126,6 @@ class TrackingConfig:
             raise ValueError("voxel_size must be positive")
         if not self.shallow_voxel_size >= 0:
             raise ValueError("shallow_voxel_size must be 0 (off) or positive")
-        if not 0 < self.axis_max_view_deg <= 90:
-            raise ValueError(f"axis_max_view_deg must lie in (0, 90], got {self.axis_max_view_deg}")
-        if self.axis_window < 0 or self.min_axis_frames < 1 or self.min_axis_points < 20:
-            raise ValueError("axis_window must be 0 or more, min_axis_frames 1 or more, min_axis_points 20 or more")
 
     def coarse_voxel(self) -> float | None:
         """The coarse round's voxel (m; refine.coarse_round), or None where there is no coarse round."""

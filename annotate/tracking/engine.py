@@ -32,9 +32,7 @@
    faces slides along its hinge), the frame is moved along it where the fitness on a wider crop
    clearly rises (slide.py), unless that takes it off the path of its neighbours (then it is
    flagged: slide.against_the_motion);
-5. common frame: first, a near-round body without symmetry whose wall is a surface of revolution (a mug; not a
-   box-like camera, nor a block or a banana that passes the roundness test) has each frame moved square across its axis so that the axis its own wall's normals meet lands on the model's (axis_centring.py: its
-   chains leave the frames nearer their cameras, which the model of all frames then holds, its wall thinned); then the consistent poses are moved by the one correction that best fits all the
+5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not
    set it); for symmetry y, the box is snapped upright on the
    axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
@@ -102,7 +100,6 @@ from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference, rotation_angle_deg
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
-from .axis_centring import each_frame_on_axis
 from .centring import centre_offsets, centred, extent_along
 from .free_spin import FreeSpinCheck
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
@@ -583,15 +580,6 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
 
     # 5: one object frame for all, fitted to the placed boxes
     poses = {f: r.pose for f, r in results.items()}
-    if nearly_round and config.frame_axis_centring:
-        # first each frame of a round body square across its axis onto the model's, from its own wall: its chains
-        # paired without the facing test and left each frame nearer its camera (axis_centring.py); not a box-like
-        # body (a camera, which passes the roundness test too: its faces snap it below). The body from the model of
-        # the trusted frames, in the same object frame
-        body = trusted if trusted is not None else build_model(tracker, poses, config.max_global_frames, anchors)
-        if not (config.face_snap and _snap_faces(tracker, body) is not None):
-            target = body.target(min_hits_for(body, config))
-            poses = each_frame_on_axis(tracker, ids, poses, target.points, np.asarray(target.cloud.normals))
     correction = common_correction({m: poses[m] for m in anchors}, placed, symmetric, {m for m in anchors if m in free})
     poses = {f: p @ correction for f, p in poses.items()}
     if symmetric and config.symmetry_snap:
