@@ -148,22 +148,20 @@ def test_a_large_body_gets_its_own_count_of_fine_rounds(scene, monkeypatch):
     rounds.clear()
     track_sequence(open_sequence(root), annotation, config=config, progress=lambda d, t: progress.append((d, t)))
     assert rounds == [1]
-    # the progress counts the rounds that run: 2 + 2 + 2 * (10 + 9) chained frames, the coarse and the one fine round, the checks (3, a mug)
-    assert progress[-1] == (2 + 2 + 2 * 19 + 2 * 24 + 3 * 24,) * 2
+    # the progress counts the rounds that run: 2 + 2 + 2 * (10 + 9) chained frames, the coarse and the one fine round, the checks (2)
+    assert progress[-1] == (2 + 2 + 2 * 19 + 2 * 24 + 2 * 24,) * 2
 
 
 def test_progress_counts_up_by_one_to_its_total_through_the_checks(scene):
     root, _, annotation = scene
-    for config in (TrackingConfig(), TrackingConfig(slide_check=False, stretch_spin_check=False)):
+    for config in (TrackingConfig(), TrackingConfig(slide_check=False)):
         progress = []
         track_sequence(open_sequence(root), annotation, config=config, progress=lambda d, t: progress.append((d, t)))
         done, total = [d for d, _ in progress], progress[-1][1]
         assert done == list(range(1, total + 1)) and {t for _, t in progress} == {total}
         # the recheck and the slides are a frame's worth each of it: the bar is not full before they run
-        # chains (anchors at frames 2, 12, 21 of 0-23: 2 before, 2 after, both ways between), 3 rounds, 2 checks,
-        # and for a mug the blocks' spins (stretch_spin.py)
-        checks = 3 if config.stretch_spin_check else 2
-        assert total == (2 + 2 + 2 * (10 + 9)) + 3 * 24 + checks * 24
+        # chains (anchors at frames 2, 12, 21 of 0-23: 2 before, 2 after, both ways between), 3 rounds, 2 checks
+        assert total == (2 + 2 + 2 * (10 + 9)) + 3 * 24 + 2 * 24
 
 
 def test_refine_frame_pulls_a_perturbed_box_onto_the_object(scene, tracked):

@@ -46,7 +46,6 @@ class TrackingConfig:
     free_space_tolerance: float = 0.01  #: global models drop voxels seen through by more than this (0: off)
     max_through_share: float = 0.5  #: ... in more than this share of the frames that see them (a moved hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
-    stretch_spin_check: bool = True  #: near-round objects without symmetry (a mug): turn blocks of frames about the axis to the spin the model of the other frames prefers (stretch_spin.py)
     spin_window: int = 2  #: near-round objects without symmetry whose spin is free somewhere (a mug): a suspect or free-spin frame takes the mean spin about the body's axis of the frames within this many either side (spin_window.py; 0: off)
     smoothing: bool = True  #: smooth the refined poses where registration leaves a direction weak (smooth.py)
     information_sigma: float = 0.002  #: point noise (m) scaling a frame's registration information
@@ -59,8 +58,6 @@ class TrackingConfig:
     manual_translation_sigma: float = 0.002  #: how far a placed box's centre is off, per axis, m (both must be > 0 for the pull)
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
     body_axis_snap: bool = True  #: near-round objects without symmetry (a mug): turn the box's y onto the body's axis fitted to the model, about the box centre
-    handle_plane_centring: bool = True  #: ... and move the box centre square across onto the plane of that axis and the handle (handle.py)
-    max_handle_shift_m: float = 0.01  #: ... by at most this (m; further means the plane is not the box's)
     max_axis_offset_m: float = 0.01  #: ... by at most this (m; further means the wall is not the body's)
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
     face_snap: bool = True  #: box-like objects (a camera): turn the box onto the model's faces, about its centre (faces.py)

@@ -15,10 +15,6 @@
    disagreement is re-measured against the final pose (refine.recheck_disagreements); the
    models of all frames leave out voxels that other frames see through (a hand before a
    regrasp, freespace.py);
-4s. stretches (a near-round object without symmetry, where consecutive frames' shape leaves the spin free: a mug): a
-   stretch of frames that came out of the chains turned about the axis holds itself there in the model of all
-   frames; each block of frames, registered to the model of the others, is turned by the spin they agree on
-   (stretch_spin.py);
 4a. flips: a frame the refinement left turned over from the frame before it (a bottle upside down: its ends fit
    each other's place) is registered again from that frame's pose (refine.repair_flips), before the smoothing
    would average it with its neighbours;
@@ -42,8 +38,8 @@
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry whose wall is a surface of revolution (a mug: _revolves) has its box's y
    turned onto the body's axis the same way, about
-   the box centre (which the handle keeps off the axis), that centre moved square across onto the plane of the
-   axis and the handle (handle.py), and each frame then turned onto its own normals near y as a bowl's (tilt.py; by at most
+   the box centre (which the handle keeps off the axis), and each frame then turned onto its own normals near y as a
+   bowl's (tilt.py; by at most
    half the cone of normals it reads: a curved patch seen from one side walks the cone's mean to its edge);
    a box-like body (a camera) onto its faces (faces.py); a hinged one (a laptop) its y onto its base's faces and
    its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the
@@ -103,13 +99,11 @@ from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .centring import centre_offsets, centred, extent_along
 from .free_spin import FreeSpinCheck
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
-from .handle import onto_handle_plane
 from .height import centred_heights
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model, undo_smoothing_bends
 from .slide import against_the_motion, shifted, slide_corrections
 from .spin_window import windowed_spins
-from .stretch_spin import stretch_spins
 from annotate.symmetry_axis import fit_axis_point, fit_symmetry_axis, snap_upright
 from .tilt import each_frame_untilted
 from .tracker import FrameResult, Tracker
@@ -297,23 +291,12 @@ def _snap_flat(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
 
 def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     """Correction (4x4) turning the box's y onto the axis of a near-round body fitted to ``model`` (a mug's body: its
-    handle an outlier to the fit), about the box centre, and moving that centre square across onto the plane of the
-    axis and the handle (handle.py); None where neither is reliable."""
-    config = tracker.config
-    fit = _fit_axis(tracker, model)
-    fitted = _usable_axis(fit, config)
-    snap = None
-    if fitted is not None:
-        snap = snap_upright(np.eye(4), *fitted)
-        snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): along the handle it stays where it is
-    if config.handle_plane_centring and fit is not None and _near_box_y(fit):
-        # an ill-conditioned fit leaves the axis's tilt doubtful, not where it crosses the box's middle: the plane
-        # through it and the handle holds the box centre (handle.py)
-        points, _ = model.points(min_hits_for(model, config))
-        shift = onto_handle_plane(points, fit.axis, fit.point, config.max_handle_shift_m)
-        if shift is not None:
-            snap = np.eye(4) if snap is None else snap
-            snap[:3, 3] = shift
+    handle an outlier to the fit), about the box centre; None where the fit is not reliable."""
+    fitted = _usable_axis(_fit_axis(tracker, model), tracker.config)
+    if fitted is None:
+        return None
+    snap = snap_upright(np.eye(4), *fitted)
+    snap[:3, 3] = 0.0  # the box centre is off the body's axis (the handle): it stays where it is
     return snap
 
 
@@ -391,26 +374,6 @@ def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
         return False
 
 
-def _stretch_spins(tracker: Tracker, results: dict[str, FrameResult], anchors: list[str], step: Progress) -> dict[str, FrameResult]:
-    """``results`` with the blocks of frames turned about the axis that the model of the other frames prefers
-    (stretch_spin.py), the turn noted as ``stretch_spin_deg``; unchanged where the model gives no axis."""
-    trusted = {f: r.pose for f, r in results.items() if r.ok and not suspect(r, tracker.config)}
-    model = build_model(tracker, trusted, tracker.config.max_global_frames, [a for a in anchors if a in trusted])
-    points, _ = model.points(min_hits_for(model, tracker.config))
-    try:
-        check = FreeSpinCheck(tracker, points)
-    except ValueError:
-        return results
-    free = [f in trusted and check.spin_free_at(f, trusted[f]) for f in results]
-    if not check.round() or not any(a and b for a, b in zip(free, free[1:])):
-        # a stretch is turned off by the chains where they carried the spin through consecutive frames whose shape
-        # leaves it free (a mug's handle hidden); elsewhere the blocks' spins against the others are as far off as
-        # they would be turned (a camera passes the roundness test, but has at most one free frame in a row)
-        return results
-    results, turned = stretch_spins(tracker, results, check.axis, check.point, step=step)
-    return {f: FrameResult(r.pose, r.ok, {**r.figures, "stretch_spin_deg": turned[f]}) if f in turned else r for f, r in results.items()}
-
-
 def free_spin_frames(tracker: Tracker, results: dict[str, FrameResult], model: ObjectModel) -> tuple[set[str], tuple[np.ndarray, np.ndarray] | None]:
     """The frames whose geometry leaves the spin about the axis of ``model`` (of the trusted frames, object frame)
     free (free_spin.py), and that axis (unit direction, point; object frame), None where none could be fitted."""
@@ -472,8 +435,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     rounds = fine_rounds + (1 if config.coarse_voxel() is not None else 0)
     # the checks after the joint refinement (the recheck of the frames whose chains disagreed, the slides) count a
     # frame's worth each: a laptop spent a third of its run in them with the bar already full
-    check_stretches = nearly_round and config.stretch_spin_check
-    steps = _Steps(chain_frames + rounds * len(ids) + (3 if check_stretches else 2) * len(ids), progress)
+    steps = _Steps(chain_frames + rounds * len(ids) + 2 * len(ids), progress)
 
     # 2-3: chains from every anchor, brought into anchor 0's object frame, and reconciled
     results: dict[str, FrameResult] = {}
@@ -522,11 +484,6 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
     results = refine_all(tracker, results, fine_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)
-    if check_stretches:
-        # a stretch that came out of the chains turned about the axis fits its own copy of the handle in that model:
-        # each block of frames against the model of the others (stretch_spin.py)
-        results = _stretch_spins(tracker, results, anchors, steps.phase(len(ids)))
-        steps.finish_phase()
     # a frame the refinement left turned over (a bottle upside down) is brought back before the smoothing averages it in
     results = repair_flips(tracker, results, anchors)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?

@@ -110,8 +110,8 @@ class Tracker:
         (FrameStore.crops) and one merge (ObjectModel.add_parts).
 
         A frame's part (its voxels in the model's grid) is kept in ``store.model_parts`` (``MODEL_PART_BYTES`` of them)
-        and reused where the frame comes again at the same pose, to the last bit: a mug's blocks of frames are each
-        judged against the model of the others (stretch_spin.py): many models of the same few poses."""
+        and reused where the frame comes again at the same pose, to the last bit: the checks after the refinement build
+        many models of the same few poses."""
         store, grid = self.store, model.grid_key()
         keys = [(f, np.asarray(pose, dtype=np.float64).tobytes(), self.box.tobytes(), self.config.voxel_size, weight, grid) for f, pose in zip(frame_ids, poses)]
         parts = {key: store.model_parts[key] for key in keys if key in store.model_parts}
