@@ -71,7 +71,6 @@ class TrackingConfig:
     min_hinge_plane_share: float = 0.35  #: ... and at least this share within hinge_plane_deg of the y-z plane
     hinge_centring: bool = True  #: ... and each frame moved along the hinge to the middle of the object's ends seen about it (centring.py)
     frame_hinge_tilt: bool = True  #: ... and then every frame turned onto its own base's and lid's normals, the median over tilt_window (tilt.py)
-    hinge_height_centring: bool = True  #: ... and then every frame moved along its y to the middle of the base's underside and the lid's top, from the faces it sees (height.py; measured on every hinge_tilt_every-th frame)
     hinge_tilt_every: int = 2  #: ... measured on every this-many-th frame (a laptop frame's normals cost ~30 ms of CPU; the median keeps 6-7)
     centring_tolerance: float = 0.005  #: ... by the frames whose span along it reaches within this (m) of the widest spans
     centring_window: int = 1  #: ... within this many frames either side (their median middle)

@@ -45,8 +45,7 @@
    its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the
    ends that the frames about it see (centring.py), and turned onto its own base's and lid's faces, the median
    over +-6 frames (tilt.py: the frames that see the base from above and those that see it from below share no
-   face, and kept their manual frames' rotations), and then moved along its y to halfway between the base's underside
-   and the lid's top, from the faces it sees (height.py: for the same reason, they kept their manual frames' y);
+   face, and kept their manual frames' rotations);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, the frames whose geometry leaves the spin about the axis free found (free_spin.py: a mug with
@@ -82,7 +81,6 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from evaluate.geometry import untransform
 from annotate.engines import anchor_frames, anchored_pose, kept_by_a_person
 from annotate.estimator.model import is_revolution
 from sequences.annotation import Annotation, FramePose
@@ -99,7 +97,6 @@ from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .centring import centre_offsets, centred, extent_along
 from .free_spin import FreeSpinCheck
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
-from .height import centred_heights
 from .model import ObjectModel
 from .refine import build_model, coarse_round, min_hits_for, recheck_disagreements, recheck_single_chains, refine_all, repair_flips, reregister_suspects, smooth_refined, suspect, trusted_model, undo_smoothing_bends
 from .slide import against_the_motion, shifted, slide_corrections
@@ -347,21 +344,6 @@ def _centred_on_hinge(tracker: Tracker, ids: list[str], poses: dict[str, np.ndar
     return {f: centred(poses[f], offset, hinge) for f, offset in zip(ids, offsets)}
 
 
-def _lid_side(tracker: Tracker, model: ObjectModel, snap: np.ndarray) -> float:
-    """The sign of the snapped object's z (+1 or -1) where a hinged body's lid rises: the side of the model's points
-    above the box centre (the model leaves out the hand); 0 where too few lie there, or their median lies within a
-    quarter of the box's half-depth of its middle (no side to tell: the base's half would be misjudged)."""
-    points, _ = model.points(min_hits_for(model, tracker.config))
-    if len(points) == 0:
-        return 0.0
-    local = untransform(snap, points)
-    upper = local[:, 1] > 0
-    if np.count_nonzero(upper) < 30:
-        return 0.0
-    middle = float(np.median(local[upper, 2]))
-    return float(np.sign(middle)) if abs(middle) >= 0.25 * float(tracker.box[2]) / 2 else 0.0
-
-
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
     """Whether the model of the placed frames, spun by 10 deg about its fitted axis, still fits itself
     (free_spin.FreeSpinCheck.round: a mug's body; not a laptop or a camera)."""
@@ -593,11 +575,6 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # the frames that see the base from above and those that see it from below share no face, and their
             # rotations differ by what their manual frames brought (tilt.py)
             poses = each_frame_untilted(tracker, ids, poses, hinged=True, every=config.hinge_tilt_every)
-        side = _lid_side(tracker, model, snap) if hinged and config.hinge_height_centring else 0.0
-        if side:
-            # ... and its centre along y from the faces each frame sees: the frames above and below share none, and
-            # kept the y their manual frames gave them (height.py)
-            poses = centred_heights(tracker, ids, poses, side, every=config.hinge_tilt_every)
 
     # 6: the document, its poses at the colour instants (the registrations' are at the depth ones: sequences.timing)
     at_colour = at_colour_time(sequence, {f: poses[f] for f in ids})
