@@ -244,11 +244,12 @@ def reconstruct_sequence(
         # symmetric objects fill their unseen sides from the rings instead (unbacked, those sides would go)
         occupied = evidence.evidence_hull(occupied, behind)
     if box_prior:
+        # nothing beyond the box and its slack is object: a still hand or a touching neighbour is never seen free
         occupied = occupied & carving.inside_box(grid, annotation.extents * (1 + BOX_BOUND_SLACK))
-    if behind is not None and box_prior:
-        # space no frame saw inside the object is object only inside the annotated box: the grid's margin (for boxes
-        # placed too small) would otherwise stay solid wherever no frame looked, or looked too rarely to carve
-        occupied = carving.bound_by_box(occupied, behind, grid, annotation.extents * (1 + BOX_PRIOR_SLACK))
+        if behind is not None:
+            # space no frame saw inside the object is object only inside the annotated box: the grid's margin (for
+            # boxes placed too small) would otherwise stay solid wherever no frame looked, or looked too rarely to carve
+            occupied = carving.bound_by_box(occupied, behind, grid, annotation.extents * (1 + BOX_PRIOR_SLACK))
     timings["symmetry"] = time.perf_counter() - start
     solid = meshing.largest_component(occupied)
     fused = None

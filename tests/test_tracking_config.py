@@ -9,7 +9,7 @@ from annotate.tracking.config import SHALLOW_RATIO, TrackingConfig, scaled_to
 
 def test_a_shallow_body_of_symmetry_y_gets_the_finer_voxel():
     config = TrackingConfig()
-    bowl = [0.140, 0.041, 0.140]  # a v5 bowl's box (m): a rim and a foot 41 mm apart
+    bowl = [0.140, 0.041, 0.140]  # a bowl's box (m): a rim and a foot 41 mm apart
     assert scaled_to(config, bowl, symmetric=True).voxel_size == config.shallow_voxel_size == 0.003
     # the same box without symmetry, a can or a bottle (tall), a mug (no symmetry): the usual voxel
     assert scaled_to(config, bowl, symmetric=False).voxel_size == config.voxel_size

@@ -14,7 +14,7 @@ from annotate.tracking.quality import pose_difference
 from annotate.tracking.reconcile import best_switch, blend_chains, chain_frame_offsets
 from annotate.tracking.tracker import FrameResult
 
-STEP_DEG = 6.0  # the object's turn per frame (a v5 synthetic sequence: 5.6-6.4 deg median)
+STEP_DEG = 6.0  # the object's turn per frame (a hand turning it briskly)
 
 
 def _pose(deg_z: float, extra: Rotation | None = None, x: float = 0.0) -> np.ndarray:
@@ -64,8 +64,7 @@ def test_chains_that_lost_the_object_are_joined_at_their_seam_not_blended():
 def test_a_chain_lost_between_the_first_two_inner_frames_is_seen():
     # the forward chain right at frame 1 only, 25 deg off from frame 2 on; the backward one right throughout.
     # The gaps' running median starts at frame 2 unless the end frames are repeated: the loss between frames
-    # 1 and 2 went unseen and the linear blend put frame 28 about 23 deg off (measured: a v5 mug, seed 3,
-    # frames 6-29 up to 17 deg off after the blend, p90 4.7 deg; with the end frames repeated 3.1)
+    # 1 and 2 went unseen and the linear blend put frame 28 about 23 deg off
     truth = _truth(31)
     ids, forward, backward = _chains(truth, lost_after=1, found_from=0)
     out = blend_chains(ids, forward, backward, symmetric=False, max_deg=5.0, max_m=0.01)
@@ -520,8 +519,8 @@ def _spin_deg(R: np.ndarray) -> float:
 
 
 def test_a_manual_frame_whose_spin_is_free_does_not_set_the_object_frames_spin():
-    """reconcile.common_correction: v5 mug seed 3 with 3 manual frames, frame 4's handle hidden: its tracked spin was
-    +4.1 deg against -1.0 and -0.9 for the others, and it held every frame's spin 1.6 deg off."""
+    """reconcile.common_correction: a mug with 3 manual frames, one with its handle hidden: its tracked spin is
+    +4.1 deg against -1.0 and -0.9 for the others, and counted, it would hold every frame's spin 1.6 deg off."""
     from annotate.tracking.reconcile import common_correction
 
     def pose(spin_deg: float, tilt_deg: float = 0.0, t=(0.0, 0.0, 0.6)) -> np.ndarray:

@@ -108,7 +108,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_a_laptop_seen_from_above_and_from_below_is_turned_onto_its_own_faces_frame_by_frame():
     # the frames that see the base from above and those that see it from below share no face: each group keeps the
-    # rotation its manual frame gave it (v5 laptop seed 1: spins of +1.0 and -1.25 deg about the base's normal).
+    # rotation its manual frame gave it (here spins of +1.0 and -1.25 deg about the base's normal).
     # Each frame's base (its normals onto +-y) and lid (its normals into the y-z plane) measure all three angles.
     voxel = 0.005
     groups = {"above": (np.array([0.0, -0.8, -0.6]), [0.4, 1.0, -0.3]), "below": (np.array([0.1, 0.7, 0.7]), [-0.3, -1.25, 0.4])}
@@ -139,7 +139,7 @@ def test_a_laptop_seen_from_above_and_from_below_is_turned_onto_its_own_faces_fr
 
 
 def test_suspect_frames_measure_no_tilt():
-    # a frame far off its object (v5 unseen mug seed 5: frames 16-19 14 mm off) measures a tilt that is not the
+    # a frame far off its object (centimetres, its chains disagreeing) measures a tilt that is not the
     # object's, and the window's median carried it to its trusted neighbours: the engine skips the suspect frames
     from types import SimpleNamespace
 

@@ -132,8 +132,8 @@ class TrackingConfig:
         return resolve(self.workers) if self.threads == 1 else 1
 
 
-#: A body of symmetry y whose box is less tall than this share of its width is shallow (a bowl: 0.24-0.33 on the v5
-#: bowls; cans and bottles 1.5-3.9).
+#: A body of symmetry y whose box is less tall than this share of its width is shallow (a bowl, about a third; cans
+#: and bottles are taller than wide).
 SHALLOW_RATIO = 0.5
 
 
@@ -141,8 +141,8 @@ def scaled_to(config: TrackingConfig, extents, symmetric: bool = False) -> Track
     """The configuration with its voxel size for an object of box ``extents`` (m; x, y, z): a shallow body of symmetry
     y (``symmetric``) starts from ``shallow_voxel_size``, and a large object's grows to max extent / ``voxels_across``.
 
-    A bowl's thin rim and foot are what fix its axis: on 4 mm voxels its frames lost it where the hand covered the
-    bowl (measured, v5 bowls over the four settings: failing checks 4 -> 0 on 3 mm voxels; docs/tracking_chains.md)."""
+    A bowl's thin rim and foot are what fix its axis: on coarser voxels its frames lose it where the hand covers the
+    bowl (docs/tracking_chains.md)."""
     from dataclasses import replace
 
     extents = np.asarray(extents, dtype=np.float64).reshape(3)

@@ -250,13 +250,8 @@ def _flat_axis_shift(tracker: Tracker, model: ObjectModel, flat: np.ndarray) -> 
     turn = flat[:3, :3]
     points = (target.points - flat[:3, 3]) @ turn  # the object frame after the snap: turn^T (p - t)
     normals = np.asarray(target.cloud.normals) @ turn
-    try:
-        point, _ = fit_axis_point(points, normals, np.array([0.0, 1.0, 0.0]))
-    except ValueError:
-        return None
-    if np.linalg.norm(point) > config.max_axis_shift_m:
-        return None
-    if not is_revolution(points, normals, config.voxel_size, np.array([0.0, 0.0, point[0], point[2]])):
+    point = _axis_of_revolution(points, normals, config.voxel_size)
+    if point is None or np.linalg.norm(point) > config.max_axis_shift_m:
         return None  # a square bowl's normal lines meet nowhere in particular: its box centre is the placed boxes'
     shift = np.eye(4)
     shift[:3, 3] = point  # its y is 0: the axis point nearest the centre
@@ -297,16 +292,21 @@ def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     return snap
 
 
-def _revolves(tracker: Tracker, model: ObjectModel) -> bool:
-    """Whether ``model``'s wall is a surface of revolution about the box's y through the point its normal lines meet
-    (estimator.model.is_revolution)."""
-    target = model.target(min_hits_for(model, tracker.config))
-    normals = np.asarray(target.cloud.normals)
+def _axis_of_revolution(points: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray | None:
+    """The point (3,; its y 0) of the axis along y where the normal lines of ``points`` (N, 3, object frame) meet
+    (symmetry.fit_axis_point), where the wall is a surface of revolution about it (estimator.model.is_revolution);
+    None where the fit fails or the wall is not (a square bowl, a box, a banana)."""
     try:
-        point, _ = fit_axis_point(target.points, normals, np.array([0.0, 1.0, 0.0]))
+        point, _ = fit_axis_point(points, normals, np.array([0.0, 1.0, 0.0]))
     except ValueError:
-        return False
-    return is_revolution(target.points, normals, tracker.config.voxel_size, np.array([0.0, 0.0, point[0], point[2]]))
+        return None
+    return point if is_revolution(points, normals, voxel, np.array([0.0, 0.0, point[0], point[2]])) else None
+
+
+def _revolves(tracker: Tracker, model: ObjectModel) -> bool:
+    """Whether ``model``'s wall is a surface of revolution about the box's y (:func:`_axis_of_revolution`)."""
+    target = model.target(min_hits_for(model, tracker.config))
+    return _axis_of_revolution(target.points, np.asarray(target.cloud.normals), tracker.config.voxel_size) is not None
 
 
 def _snap_faces(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:

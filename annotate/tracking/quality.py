@@ -110,8 +110,8 @@ def spin_reasons(figures: dict, config) -> list[str]:
 
 def large_rejected_step(figures: dict, config) -> bool:
     """Whether the joint refinement turned down a move beyond its step limits (refine.large_step): a rival
-    pose that far fits the model nearly as well, so the model does not settle the frame (measured: a v5 laptop
-    frame 10.1 deg off, kept 10.4 deg / 29 mm from where the model pulled it, and nothing else flagged it)."""
+    pose that far fits the model nearly as well, so the model does not settle the frame, and nothing else may flag
+    it."""
     deg, metres = figures.get("refine_rejected_deg", 0.0), figures.get("refine_rejected_m", 0.0)
     return (config.max_refine_step_deg > 0 and deg > config.max_refine_step_deg) or (config.max_refine_step_m > 0 and metres > config.max_refine_step_m)
 
