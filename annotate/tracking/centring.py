@@ -2,9 +2,8 @@
 
 A laptop seen on its faces gives point-to-plane ICP nothing along its hinge (its x): the chains carry that
 offset through whole stretches, and the model of all frames, built from them, is smeared along x by as much, so
-neither the refinement nor the fitness of a wider crop (slide.py) can pull a stretch back. Measured on the v5
-laptops (4 manual frames off by up to 3 deg / 5 mm / 8 %): seed 3's frames 73-91 were 12-16 mm off along x,
-unflagged.
+neither the refinement nor the fitness of a wider crop (slide.py) can pull a stretch back: it can stay a
+centimetre or more off along x, unflagged.
 
 The box is tight, so its centre along x is halfway between the object's two ends along x, and a frame that sees
 both ends shows them: the object-frame x of its points (those on the model's surfaces, so not the hand) runs
@@ -12,71 +11,31 @@ from one end to the other. Per frame, :func:`extent_along` gives that span and i
 falls short of the widest ones (the 75th percentile) has an end hidden (by the hand, or turned away) and its
 middle is not used. Each frame is then moved along x by the median middle of the frames within +-``window`` that
 saw both ends: single frames' middles scatter by 2-4 mm (the ends' sampling), and a stretch's offset is shared by
-its frames.
+its frames. Frames move along x only: the rotations stay.
 
-Measured (bench_tracking, v5 laptops, after the hinge snap), median box-centre error (mm):
+The window (``TrackingConfig.centring_window``) is +-1 frame: the chains' offset along x changes by several mm
+from one frame to the next where a stretch slides, and a wider median mixes more of the neighbours' offsets into
+a frame's; each frame's own middle alone fails more goal checks. The spans' ends are taken near the extremes
+(``END_PERCENTILES``): at 2 / 98 the two ends' different densities shift the middle. The method has an error of
+its own of a few mm over some stretches, which it adds where nothing slid: a hand's fingers at an end widen a
+span, and even at the true poses of a laptop without a hand the middles lie about 1 mm off (the ends are sampled
+unevenly).
 
-| setting | seeds | before | after |
-|---|---|---|---|
-| 4 manual frames off by up to 3 deg / 5 mm / 8 % | 0-3 | 2.01, 7.09, 2.44, 4.61 | 2.13, 4.36, 1.84, 2.55 |
-| 3 manual frames, 3 deg | 0-3 | 2.07, 4.77, 3.13, 3.36 | 2.82, 3.80, 2.94, 2.91 |
-| 3 manual frames, 5 deg | 0-3 | 2.80, 5.40, 2.15, 3.36 | 2.70, 3.51, 2.01, 4.02 |
-| 4 manual frames, unseen | 4-7 | 2.22, 2.24, 2.46, 2.42 | 2.07, 1.28, 3.64, 2.00 |
-
-Summed 52.5 -> 44.6 mm; centres over 3 mm 7 -> 5 of 16. It corrects the stretches that slid (seed 3's frames 73-91:
-12-16 -> 3-5 mm, but 81-84 stay 15 mm off: none of the frames about them spans the width) but has an error of its
-own of 2-4 mm over some stretches, which it adds where nothing slid (unseen seed 6: frames 0-28 span 3.5 mm more
-than the laptop's width, the hand's fingers within 2 voxels of its edge; frames 36-50 4-7 mm off). At the true
-poses of a rendered laptop without a hand its middles lie 0.8-1.3 mm off (the ends are sampled unevenly). Measured
-post hoc on the poses before it (the 16 runs): the end percentiles 2 / 98 summed 55 mm (the two ends' densities
-differ); 0.1-0.5 / 99.5-99.9 and 0.75-2 voxels from the model, 44.7-47.1 mm; spans within 2-5 mm of the median span
-instead of the widest, 44.7-46.3 mm; moving a frame only where its offset exceeds 3, 5 or 7 mm, 48-50 mm.
-Later (2026-11-27, after the interpolation): spans also no more than ``tolerance`` wider than the widest ones (laptop
-seed 1's frames 81-88 span 310-318 mm of a 306.5 mm laptop, the fingers at one end), the 16 runs' centres summed
-44.51 -> 44.61 mm, the same checks failing.
-
-The window (``TrackingConfig.centring_window``) is +-1 frame, not +-2 (2026-11-27): the chains' offset along x changes
-by several mm from one frame to the next where a stretch slides (laptop seed 1's frames 80-83: +10.9, +3.5, -0.3,
--3.9 mm), and a median over +-2 frames mixes more of the neighbours' offsets into a frame's. Post hoc on the poses before this
-step (the issue's setting, seeds 0-3), the median |x error| after it: +-2 frames 1.34, 2.91, 1.47, 2.25 mm; +-1
-1.25, 2.51, 1.19, 2.04; each frame's own middle 1.30, 1.90, 1.30, 1.90; +-4 and +-10 worse (seed 1 3.18, 5.08).
-End to end (the 16 laptop runs, four settings), box-centre medians summed 44.51 -> 43.91 mm at +-1 (11 runs lower,
-4 higher by at most 0.10 mm, 1 the same; the issue's setting 2.13, 4.36, 1.84, 2.55 -> 2.09, 4.24, 1.69, 2.39 mm) and
-43.15 mm with each frame's own middle, which however takes 3 manual frames' seed 0 to 3.01 mm, a goal check more
-failing. Rotations and F-scores do not move.
-
-A frame whose box slid further along x than the crop's slack (8 % of the width and the margin) sees its points run
-on to the crop's end, and the model, built from the frames about it, stops at the object's end before that: its
-span is short, so it took the frames about it, which do not share its slide (laptop seed 1's frames 36-41 and
-50-52, 35-58 mm off, 51-52 unflagged). Such an end is marked as cut (``Span.cut_low`` / ``cut_high``), and where the
-other end, half the width of the frames that saw both ends in, puts the frame's middle more than ``MIN_SLIDE_M``
-from the offset of the frames about it, the frame takes that middle (2026-11-27). Measured over the 16 laptop runs
-(four settings): frames more than 10 mm off 75 -> 37 (unflagged 5 -> 4), more than 20 mm off 60 -> 20, the mean
-centre error 4.44 -> 3.52 mm; seed 1's frames 36-41 came to 0.4-12 mm along x and 50-52 to 0.6, 3.4 and 18. Medians:
-the issue's setting seed 1 4.24 -> 4.08 mm (its F-score 0.863 -> 0.880), with 3 manual frames 3.68 -> 3.51 mm; no
-run's median higher, rotations unchanged.
+A frame whose box slid further along x than the crop's slack (the crop margin, and what the placed box exceeds
+the object by) sees its points run on to the crop's end, and the model, built from the frames about it, stops at
+the object's end before that: its span is short, so it would take the offset of the frames about it, which do
+not share its slide. Such an end is marked as cut (``Span.cut_low`` / ``cut_high``), and where the other end,
+half the width of the frames that saw both ends in, puts the frame's middle more than ``MIN_SLIDE_M`` from the
+offset of the frames about it, the frame takes that middle.
 
 A frame that sees one of the object's end faces (square to the axis: a laptop's sides) measures that end on the face
 itself (:func:`end_faces`), to a fraction of a millimetre where the spans' ends are off by 2-5 mm (the outline falls
 short of the end, a face's noise runs beyond it), and takes the middle it gives, half the width of the frames that saw
-both ends in (2026-11-27). Laptop seeds 0-3 see a face in 36-52 of their 100 frames. Post hoc on laptop seed 1's poses
-before this step, the faces foretold their frames' offsets to within 0.1-1.4 mm (frames 84-96, 4-8 mm off along x,
-unflagged: the spans' middles had taken the outline's shortfall for the offset). Measured over the 16 laptop runs (four
-settings), box-centre medians:
-
-| setting | seeds | before | after |
-|---|---|---|---|
-| 4 manual frames off by up to 3 deg / 5 mm / 8 % | 0-3 | 2.09, 4.08, 1.69, 2.39 | 1.79, 3.52, 1.46, 1.41 |
-| 3 manual frames, 3 deg | 0-3 | 2.75, 3.51, 2.94, 2.94 | 2.05, 3.35, 2.86, 2.73 |
-| 3 manual frames, 5 deg | 0-3 | 2.70, 3.49, 2.04, 4.12 | 2.05, 3.55, 1.80, 3.62 |
-| 4 manual frames, unseen | 4-7 | 2.06, 1.25, 3.60, 1.86 | 1.88, 0.99, 2.77, 1.86 |
-
-Summed 43.51 -> 37.69 mm (15 runs lower, one 0.06 mm higher); centres over 3 mm 5 -> 4 (unseen seed 6 passes); the
-issue's setting seed 1's F@5mm 0.880 -> 0.899. Rotations unchanged. What is left: the width of the frames that saw both
-ends is their spans' (1.5-2.4 mm short of the laptop's on seeds 0-3: the outline's shortfall less the face's noise), so a
-face's frame lies half that off, about 1 mm; the spans' ends at full resolution instead of voxels were no nearer (a
-rendered laptop: 352.1 mm against 353.4 of a 355.4 mm laptop). A frame measured costs ~6 ms of CPU more (its crop at
-full resolution, the normals of the points near its ends).
+both ends in. A laptop sees a face in a third to a half of its frames; there the spans' middles would take the
+outline's shortfall for an offset. What is left: the width of the frames that saw both ends is their spans' (about
+2 mm short of the object's: the outline's shortfall less the face's noise), so a face's frame lies half that off,
+about 1 mm; the spans' ends at full resolution instead of voxels are no nearer. A frame measured costs ~6 ms of CPU
+more (its crop at full resolution, the normals of the points near its ends).
 """
 
 from __future__ import annotations
@@ -163,15 +122,13 @@ def end_faces(tracker: Tracker, frame_id: str, pose: np.ndarray, direction: np.n
 
     A face seen gives its end to a fraction of a millimetre: its points lie on it. An end seen only as the outline
     of the faces beside it falls short (the last pixel before the background lies up to a pixel-step inside it, and
-    depth jumps lose pixels), and a face's own end percentile lies beyond it (its noise). Measured on laptop seed 1
-    at the true poses: the span's ends 3-5 mm short and 2-3 mm beyond; the face medians within 0.2 mm.
+    depth jumps lose pixels), and a face's own end percentile lies beyond it (its noise).
 
     The points are not filtered by the model, as the spans are: a model of all frames keeps little of the end faces
-    (seen by few frames, at offsets that differ by as much as they slid): laptop seed 1's frame 85, 85 of its 1020
-    face points lay on it, and frames 91-96 had too few left. A rotation error of the pose about the box centre moves
-    the median by the angle times the face's distance from the centre across the axis (1 deg: 1.5 mm on a rendered
-    laptop); a fit of the face's tilt, read at the box centre, took that out there, but over the 16 laptop runs its
-    centres summed 38.16 mm against the median's 37.69, 5 over 3 mm against 4.
+    (seen by few frames, at offsets that differ by as much as they slid), and a frame would find few of its face
+    points on it. A rotation error of the pose about the box centre moves the median by the angle times the face's
+    distance from the centre across the axis (1 deg: 1.5 mm on a rendered laptop); a fit of the face's tilt, read
+    at the box centre, would take that out, but does no better than the median and is not used.
     """
     points, _ = tracker.store.crop(frame_id, pose, tracker.box, tracker.config.crop_margin, None, keep=False)
     if len(points) < MIN_FACE_POINTS:
@@ -203,8 +160,8 @@ def centre_offsets(spans: list[Span | tuple[float, float] | None], tolerance: fl
     """Per frame (in order): how far (m) the object's centre lies along the axis from the box centre, the median
     middle of the spans within +-``window`` frames that reach within ``tolerance`` (m) of the widest ones (the
     75th percentile of all spans). A frame without such a span about it shares its stretch's offset, interpolated
-    between the nearest frames that have one on either side and held beyond the first and last (measured: laptop
-    seed 3's frames 82-85, 15 mm off along the hinge where their neighbours were corrected to 3-5 mm, came to 5 mm).
+    between the nearest frames that have one on either side and held beyond the first and last (left alone, such
+    frames stay off where their neighbours are corrected).
     A frame whose :class:`Span` has one end cut by the crop takes the middle its other end gives, where that lies
     more than ``MIN_SLIDE_M`` from this offset (a slid box). A frame that sees an end face takes the middle that face
     gives, half the width of the frames that saw both ends in (the mean of the two where it sees both). 0 everywhere

@@ -15,30 +15,21 @@ Not for every shape:
   Symmetric objects are left to the axis snap, except where it is refused (a shallow bowl):
   :func:`tilt_onto_axis` then turns the normals near +-y (its foot, its inner bottom) onto y.
 - a laptop has a frame in its faces all the same (:func:`hinge_rotation`): its base's top and bottom face along y,
-  and its lid, hinged along x, faces somewhere in the y-z plane whatever its angle. Its box was left at the placed
-  boxes' mean tilt, 1.0-1.4 deg off in v5 seeds 0-1. Measured (bench_tracking, engine ``hinge_snap``), laptop
-  rotation medians (deg), 4 manual frames off by up to 3 deg / 5 mm / 8 %: seeds 0-3 1.35, 1.42, 0.58, 0.59 ->
-  0.62, 1.20, 0.52, 0.29; unseen seeds 4-7 0.83, 1.11, 1.38, 1.29 -> 0.36, 0.47, 0.86, 0.60; 3 manual frames off
-  by up to 3 deg: 0.38, 1.45, 0.36, 1.00 -> 0.16, 1.20, 0.42, 0.59; by up to 5 deg: 0.87, 2.16, 0.52, 1.79 ->
-  0.21, 1.76, 0.53, 1.18. Chosen on seeds 0-3 (4 manual frames): the plane within 3 deg of y-z. With 10 deg, seed
-  2 went 0.58 -> 1.15: the normals along the lid's side edges lean out of the plane on the side seen more (with
-  the true poses the fit was 0.5 deg off about y; 0.1-0.2 deg with 3 deg). The base's cone alone (no spin): 1.01,
-  1.17, 0.53, 0.42.
+  and its lid, hinged along x, faces somewhere in the y-z plane whatever its angle. Without it, its box keeps the
+  placed boxes' mean tilt, a degree or so off. The plane is narrow (``TrackingConfig.hinge_plane_deg``, 3 deg):
+  within a wider one the normals along the lid's side edges, which lean out of the plane on the side seen more,
+  turn the spin off. The base's cone alone, the spin left as it is, does less well.
 
-Measured with the bowls' flat faces (engine, ``TrackingConfig.flat_snap``; bench_tracking on the v5 bowls, whose
-axis fit is refused in every run; turns of 0.03-1.3 deg, no flag changed): rotation medians (deg), 4 manual frames off by up to
-3 deg / 5 mm / 8 %, seeds 0-3: 0.79, 1.24, 0.50, 0.90 -> 0.77, 1.10, 0.64, 0.94; unseen seeds 4-7: 0.78, 0.77,
-1.06, 1.95 -> 0.92, 0.52, 0.52, 1.62; 3 manual frames off by up to 3 deg: 0.94, 2.22, 0.50, 0.75 -> 0.68, 2.19,
-0.50, 0.75 (seed 3's p90 3.07 -> 3.00 now passes); off by up to 5 deg: 1.53, 2.07, 0.58, 1.44 -> 0.90, 2.70,
-0.49, 1.62. Sums over the 16 runs: medians 18.0 -> 16.9 deg, p90s 36.9 -> 36.0; failing bowl checks 11 -> 10.
-Cones of 3 and 7 deg measured post hoc on the same poses: no better than 5. Applied to the cans and bottles in
-place of their axis snap, it made their medians worse in 19 of 24 post-hoc runs (by up to 0.34 deg).
+The bowls' flat faces (engine, ``TrackingConfig.flat_snap``): where a bowl's axis fit is refused,
+:func:`tilt_onto_axis` turns its box by a degree or less, which lowers the rotation errors a little overall and
+changes no flag. Its cone (``TrackingConfig.flat_cone_deg``) is 5 deg: 3 and 7 deg do no better. It is not used
+on cans and bottles in place of their axis snap: there it makes the rotations worse.
 
-Measured post hoc on the tracked poses of the v5 cameras (bench_tracking, 4 manual frames off by up to 3 deg /
-5 mm / 8 %), rotation median before -> after (deg): seeds 0-3 1.13 -> 0.78, 1.24 -> 0.82, 0.57 -> 0.65,
-1.38 -> 1.02; unseen seeds 4-7 1.03 -> 0.76, 1.08 -> 0.62, 1.27 -> 0.64, 1.48 -> 0.94. Laptops: seed 1
-1.41 -> 2.25 with its lid in the z cone. Shares of the models' normals in the cones (seeds 0-7): cameras 7-14 %
-about x, 67-75 % in all six; laptops 0.3-0.6 % about x; mugs 18-32 % in all six.
+On a camera the face snap (:func:`face_rotation`) lowers the rotation error; on a laptop it does harm (its lid
+falls into the z cone), and :func:`box_like` keeps it out. The shares of a model's normals in the cones tell them
+apart (``TrackingConfig.min_face_share`` / ``min_faces_total``): a camera's six cones hold about two thirds to
+three quarters of its normals, 7-14 % about x; a laptop holds under 1 % about x; a mug's six cones a fifth to a
+third.
 """
 
 from __future__ import annotations

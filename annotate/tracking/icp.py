@@ -1,11 +1,11 @@
 """Point-to-plane ICP that reuses the target's search structure: Open3D's ``registration_icp``, step for step.
 
 Open3D's ``registration_icp`` builds a KD-tree on the target at every call (twice per frame,
-coarse and fine), and tracking registers many frames against the same model (measured: v5
-laptop seed 0, 722 registrations against 51 models, 17,000 model points against 2,100 frame
-points; the tree builds were a third of the ICP time). This module runs the same loop with
-the model's search grid built once (:meth:`ModelTarget.grid`: an exact k-nearest search,
-nearest_grid.py), and reproduces Open3D's result bit for bit (Open3D 0.20, one thread):
+coarse and fine), and tracking registers many frames against the same model (tens of
+registrations per model, each model several times larger than a frame: the tree builds take about
+a third of the ICP time). This module runs the same loop with the model's search grid built once
+(:meth:`ModelTarget.grid`: an exact k-nearest search, nearest_grid.py), and reproduces Open3D's
+result bit for bit (Open3D 0.20, one thread):
 
 - the transformed source cloud and the update (``compute_transformation``: the robust
   normal equations and their solve) are Open3D's own calls, on the same inputs;
@@ -17,15 +17,14 @@ nearest_grid.py), and reproduces Open3D's result bit for bit (Open3D 0.20, one t
 
 Only a tie, two model points at the same squared distance from a frame point to the last bit, can
 resolve otherwise: nanoflann keeps the first it finds, the grid the lower index. Ties are rare but
-real: one pair in the 505 registrations of a v5 camera (seed 1), whose run then drifted to other
-poses (96 frames within 1 deg and 1.3 mm; all of its goal checks pass either way), and none in the
-843 of laptop seed 1. tests/test_tracking_icp.py checks the equality against Open3D.
+real (of the order of one in a thousand registrations), and a run that meets one can then drift
+to slightly different poses. tests/test_tracking_icp.py checks the equality against Open3D.
 
 The per-point loops (the bookkeeping of :class:`NearestModelPoints`, the pairs) are compiled
-(icp_kernels.py). Measured on the 843 registrations of a v5 laptop seed 1 run, replayed one after
-the other against the numpy code and scipy's KD-tree, the same results to the last bit: the loops
-compiled 0.58 of the time, and with the fine stage taking over the coarse stage's points 0.55; the
-grid's searches instead of the KD-tree's then 0.75-0.80 of that (cells of 3 voxels; 2: 0.84, 4: 0.82).
+(icp_kernels.py), with the same results to the last bit as the numpy code and scipy's KD-tree. The
+compiled loops, with the fine stage taking over the coarse stage's points, take about half the time
+of the numpy code, and the grid's searches instead of the KD-tree's take a fifth to a quarter off
+that; cells of 3 voxels (``registration.GRID_CELL_VOXELS``) search faster than cells of 2 or 4.
 
 The tracker's models also orient their normals (registration.py), and then, with
 ``RegistrationParams.facing`` (the default), a pair whose model normal faces away from the camera
@@ -53,11 +52,11 @@ _EIGEN_PRECISION = 1e-12
 REACH = 1.5
 
 #: With the facing test, a stage also ends once an iteration moves the pose by less than these (m, rad):
-#: measured on a v5 laptop (seed 3), 1e-5 / 1e-4 left 185 ms per frame, these 138 (without the test 117).
+#: tighter bounds let a stage run on, for a third more time per frame, through steps that no longer move the pose.
 SETTLED_STEP_M = 1e-4
 SETTLED_STEP_RAD = 3e-4
 
-#: Model points kept per source point between searches (3, 6 and 8 measured no faster with the grid).
+#: Model points kept per source point between searches (3, 6 or 8 are no faster with the grid).
 CANDIDATES = 4
 
 
@@ -203,19 +202,14 @@ def point_to_plane(source: o3d.geometry.PointCloud, target: "ModelTarget", init:
     """Coarse-to-fine point-to-plane ICP with a Tukey kernel: registration._icp_open3d's result, tree built once;
     with ``params.coarse_points``, the coarse stage on every k-th point (Open3D's ICP on those, then the fine stage's on all).
 
-    The coarse stage runs 70 % of the iterations (a v5 laptop: 9.7 per registration against 3.8 in the fine stage)
-    on frames of up to 2,500 points (laptops ~2,100, bowls ~1,500, the others under 900). Measured with at most
-    1,500 points in it (bench_tracking --reconstruct, v5 seeds 0-3, 4 manual frames off by up to 3 deg / 5 mm / 8 %):
-    sums over the 24 sequences of rotation median 12.47 -> 12.40 deg, p90 27.84 -> 26.09, centre 35.53 -> 35.00 mm,
-    no goal check failing either way (posed-mesh F@5mm 0.92-1.00); cans and cameras within 0.02; laptops 144/221/204/
-    168 -> 165/176/175/144 ms per frame in one session (the flagged frames, whose rechecks cost registrations, move
-    both ways: seed 0 0 -> 22). With 3 manual frames (bowls and mugs, where that setting fails checks) 3 -> 3 checks
-    failing, bowl seed 1's p90 3.55 -> 2.67 deg, mug seed 2's 2.16 -> 1.34. At most 1,200 points: laptops a further
-    6 ms faster, but bowl seed 1's p90 1.18 -> 2.52 deg.
+    The coarse stage runs most of the iterations (about 70 % on a laptop) on frames of up to 2,500 points (laptops
+    ~2,100, bowls ~1,500, the others under 900). Every k-th point, up to ``coarse_points`` (1,500), brings the pose
+    into the fine stage's reach as well as all of them do, and saves time on the large frames (a laptop's); fewer
+    points (1,200) save little more and leave a bowl's rotations further off.
     """
     reg = o3d.pipelines.registration
     T, fitness, rmse, nearest, previous = np.asarray(init, dtype=np.float64), 0.0, 0.0, None, None
-    # the coarse stage only brings the pose into the fine stage's reach: every k-th point does that (measured above)
+    # the coarse stage only brings the pose into the fine stage's reach: every k-th point does that (see above)
     coarse = thinned(source, params.coarse_points)
     for stage, distance in enumerate((params.max_distance, params.fine_distance)):
         estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=max(params.kernel, distance / 2)))

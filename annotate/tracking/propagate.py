@@ -22,9 +22,9 @@ def predict(previous: np.ndarray, before: np.ndarray) -> np.ndarray:
     # the object's motion in the camera frame between the last two frames, applied once more
     motion = previous @ invert(before)
     # made rigid again: ``invert`` transposes, so a rotation block off by e gives a prediction off by about 2e
-    # plus the error before it, and a chain's poses drifted off the rotations 2.4 times further each frame
-    # (measured: from rounding, 1e-6 after 16 frames and 0.7, a shear of the points, after 40: v5 bowl seed 0,
-    # 3 manual frames); the seams' jump costs (reconcile) and the refinement's flip repair use it too
+    # plus the error before it, and a chain's poses drift off the rotations further each frame (from rounding at
+    # first to a shear of the points within a few dozen frames); the seams' jump costs (reconcile) and the
+    # refinement's flip repair use it too
     return rigid(motion @ previous)
 
 
@@ -34,14 +34,10 @@ def follows(result: FrameResult, start: np.ndarray, config: TrackingConfig) -> b
     within ``chain_follow_step_deg`` / ``_m`` of the pose it started from (``start``, 4x4).
 
     The fitness counts the frame's points near the model, and a model of the few frames seen so far covers little
-    of an object that turns new surfaces to the camera: a chain that waited for ``min_fitness`` held its last pose
-    while the object moved on, and lost it. Measured on v5 laptop seed 0 (4 manual frames off by up to 3 deg / 5 mm /
-    8 %): the chain back from frame 35 fitted frames 34-28 at 0.49-0.34 within 1 deg, took none of them, lost the
-    laptop at frame 27 and registered its last 24 frames 5-180 deg off at fitness 0.00-0.21 (30-60 ICP iterations
-    each); taking them, its fitness rose to 0.64-0.99. Over that sequence's 8 chains (192 registrations) the worst
-    frame went from 180 to 3.9 deg off, the frames more than 10 mm off from 102 to 37, and the ICP iterations from
-    20.8 to 8.8 per registration. A lost chain's registrations move far from where they start: the step bound keeps
-    them out.
+    of an object that turns new surfaces to the camera: a chain that waits for ``min_fitness`` holds its last pose
+    while the object moves on, and loses it; its later frames then register far off at a low fitness, with many
+    ICP iterations each. A frame that fits less well but stays near where it started keeps the chain on the
+    object. A lost chain's registrations move far from where they start: the step bound keeps them out.
     """
     if not result.ok:
         return False

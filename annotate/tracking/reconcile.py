@@ -50,24 +50,21 @@ def blend_chains(
     them lost the object and the linear blend would put the frames between both stories. If they meet again
     (a frame where they agree within twice the thresholds: the seam), the frames take the forward chain
     before the seam and the backward chain after it (blended over up to ``ramp`` frames on each side
-where they still meet):
-    one path joining both anchors, each part carried by the chain that was still on the object.
-    Those frames get ``chain_switch: true`` and keep the raw disagreement as
+    where they still meet): one path joining both anchors, each part carried by the chain that was still
+    on the object. Those frames get ``chain_switch: true`` and keep the raw disagreement as
     ``chain_disagreement_raw_deg`` / ``_m``; the ones a jump separates from the seam (the lost
     chain's stretch) get the seam's disagreement as ``chain_disagreement_deg`` / ``_m`` (the path's
     own inconsistency), or the worst departure from constant-velocity motion of the chain that carries
-    them between them and its anchor where that is larger (measured: 3 manual frames off by up to 5 deg,
-    a v5 bowl's frames 30-36 came 20-27 deg off from a chain that had jumped 12 deg on the way, with the
-    seam's gap 3.7 deg as their figure; over 24 sequences unflagged > 10 deg 8 -> 0), the others keep the raw one (both chains meant to be on the object). Measured on a v5 mug (seed 1): the backward chain jumped 20 deg where
-    the mug turned its bottom to the camera, the forward one drifted 20 deg after frame 28; they
-    met within 5 deg at frame 27.
+    them between them and its anchor where that is larger (a chain that jumped on the way can carry its
+    frames far off while the seam's gap stays small), the others keep the raw one (both chains meant to be
+    on the object). A typical case: the backward chain jumps where the object turns a new side to the
+    camera, the forward one drifts off later, and the two meet in between.
 
     If no frame has the two within twice the thresholds, the path switches at once where it moves most
     smoothly (:func:`best_switch`, the path's steps into the anchors counted with ``anchors``: the two
     anchor poses), and a frame a jump separates from the switch gets, as its disagreement, the worst
-    departure between it and the anchor its part of the path comes from. Measured (v5, 4 manual frames
-    off by up to 3 deg; 24 sequences): the linear blend this replaces mixed a lost chain into the frames
-    of laptops seeds 1-2 (rotation p90 4.3 and 7.5 deg; with the switch 2.4 and 1.2).
+    departure between it and the anchor its part of the path comes from. The linear blend would mix the
+    lost chain into those frames.
     """
     n = len(frame_ids) - 1
     inner = frame_ids[1:-1]
@@ -83,7 +80,7 @@ where they still meet):
             gaps[frame_id] = pose_difference(f.pose, Tb, symmetric)
     seam = None
     # a chain that lost the object jumps: the gap changes by more than the threshold from one frame to
-    # the next (measured: 7-12 deg on a v5 mug); two chains drifting apart (a shallow bowl's slow 3 deg
+    # the next (by several degrees at once); two chains drifting apart (a shallow bowl's slow 3 deg
     # per frame) are what the linear blend is for. A centre offset alone is the anchors' own (a dropped link).
     # A one-frame excursion (a bowl's chain 15 deg off for one frame, back the next) is no loss: the gaps'
     # running median of 3 sees through it (except at an end frame, see below).
@@ -182,15 +179,13 @@ def best_switch(
     the switch gets that as its chains' disagreement: its pose comes from that anchor through that chain alone).
 
     A chain that loses the object jumps: its pose departs from the constant-velocity prediction by a
-    loss's size (7-25 deg on the v5 mugs) instead of the hand's noise (about 1 deg). Each candidate path
+    loss's size (several to tens of degrees) instead of the hand's noise (about 1 deg). Each candidate path
     is scored by its worst departure in units of the thresholds, inside the forward part, inside the
     backward part and across the switch (each side's prediction of the other). With ``anchors`` (the
     poses of frame_ids[0] and [-1], where the chains start), the path's steps into them count too, so a
     chain that drifts smoothly away from the far anchor does not win. A departure involving a frame that
     failed in its chain is not scored (that frame keeps a prediction, and takes the other chain's pose).
-    Measured on a v5 laptop (seed 1, frames 35-66): no frame had the two chains within twice the
-    thresholds, and the linear blend put the slid forward chain into 25 frames (rotation p90 4.3 deg;
-    with the switch 2.4). ``departures``: the same arguments' :func:`_departure_maxima`, when the caller has it.
+    ``departures``: the same arguments' :func:`_departure_maxima`, when the caller has it.
     """
     n = len(frame_ids) - 1
     if departures is None:
@@ -268,10 +263,9 @@ def both_chains_jumped(departures: Departures) -> dict[int, tuple[float, float]]
     """Per inner index whose two chains both registered (``departures``: one stretch's :func:`_departure_maxima`):
     the (deg, m) of the smaller of the two chains' worst jumps on their way from their anchors to the frame (the
     forward chain's between the first anchor and the frame, the backward chain's between the frame and the last
-    anchor), as departures from constant-velocity motion. Where both exceed the thresholds, neither chain vouches for the frame, whatever their gap says:
-    measured on the bundled sample (a mug, 3 boxes placed within 1.3 deg), the forward chain jumped 9.7 deg
-    about the axis at frame 12 and the backward one 13 deg at frame 28; frames 16-25 came out 10-13 deg off
-    with the chains 4-5 deg apart and no flag.
+    anchor), as departures from constant-velocity motion. Where both exceed the thresholds, neither chain
+    vouches for the frame, whatever their gap says: two chains that each jumped on their way can agree within
+    the thresholds on frames that both carry far off.
     """
     n = len(departures.before) - 1
     before, after = departures.before, departures.after
@@ -286,14 +280,12 @@ def common_correction(tracked: dict[str, np.ndarray], placed: dict[str, np.ndarr
     rotation, mean translation) averages out the independent errors of hand placement.
     For symmetric objects each one's free rotation about y is first made consistent with the first; so is, for an
     object without symmetry, that of each manual frame in ``free_spin`` (its shape leaves the spin free: a mug with
-    its handle hidden) with the mean of the others. Measured on v5 mug seed 3, 3 manual frames: frame 4's tracked
-    spin +4.1 deg against -1.0 and -0.9 held every frame 1.6 deg off; median / p90 2.12 / 3.11 -> 1.38 / 2.72 deg.
+    its handle hidden) with the mean of the others: such a frame's tracked spin comes from its neighbours, and one
+    spin a few degrees off would turn every frame by its share of the mean.
 
-    Measured and not kept: taking the translation from the tight box of the tracked model instead (the points'
-    0-2 % and 98-100 % quantiles per axis; v5 bottle, bowl, can, laptop and mug, seeds 0-3, 4 manual frames off
-    by up to 3 deg / 5 mm / 8 %): the tracked poses' common offset (their median error) is at most 2.3 mm per
-    axis, the model's box is off by up to 6.6 mm (a hand left in the model, a side never seen), and the centre
-    medians rose in 14-16 of 20 runs.
+    Not used: taking the translation from the tight box of the tracked model instead (the points' 0-2 % and
+    98-100 % quantiles per axis): the tracked poses' common offset is a few mm at most, while the model's box can
+    be off by more (a hand left in the model, a side never seen), and the centres came out further off.
     """
     corrections = [np.linalg.inv(tracked[m]) @ placed[m] for m in placed]
     rotations = [c[:3, :3] for c in corrections]
@@ -341,15 +333,10 @@ def chain_frame_offsets(
     placements carry no information (the links are taken as they are). Anchors that no measured link
     joins form groups, each centred on its own placed boxes.
 
-    Measured end to end (bench_tracking, v5 seeds 0-3, all 6 categories, 4 manual frames off by up to
-    3 deg / 5 mm / 8%: the issue's setting, whose per-axis sigma is 1 deg / 2.2 mm), sums over the 24
-    sequences of rot median / p90 deg and centre mm, the previous code (links taken as they are, a meeting link
-    halfway to the identity) -> this:
-    22.73 / 49.11 / 59.4 -> 22.67 / 45.82 / 50.4 (with the recheck's vouching, refine._vouched), and
-    22.01 / 45.35 / 50.3 once symmetric objects' links carry their chains' spin (below).
-    Why both: against the truth, the anchors' frames alone (before the joint refinement), mean over the
-    anchors of those sequences, were 1.18 deg / 2.58 mm with the links as they are and 1.06 deg / 2.76 mm
-    with the placed boxes as they are: two measurements of the same size.
+    Why both: against the truth, the anchors' frames from the links as they are and from the placed boxes as they
+    are lie about equally far off (about 1 deg / 2.5 mm for boxes placed up to 3 deg / 5 mm off, whose per-axis
+    error is about 1 deg / 2.2 mm: the default ``placement_sigma``): two measurements of the same size. Weighted
+    together they put the anchors' frames closer than the links taken as they are.
     """
     links = _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg, max_link_m)
     count = len(anchors)
@@ -373,8 +360,8 @@ def chain_frame_offsets(
 
 
 #: the uncertainty (deg, m per axis) of an anchor link measured by one chain alone (the other lost the object):
-#: a placement's own (measured on v5 seeds 0-3: 2 deg / 4 mm gave unflagged frames > 10 deg on mugs and
-#: rot median sums 22.73 -> 25.02, as the drifted chain's link was mostly dropped)
+#: a placement's own (with twice that, the link counts too little against the placements, and frames on mugs
+#: came out far off)
 SINGLE_LINK_SIGMA = (1.0, 0.002)
 #: ... and of one measured where the two chains meet (:func:`_meeting_link`): both drifted on the way there
 MEETING_LINK_SIGMA = (2.0, 0.004)
@@ -405,9 +392,8 @@ def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg,
         estimates = [e for e in estimates if _small(e, symmetric, max_link_deg, max_link_m)]
         if len(estimates) == 1 and not _small(estimates[0], symmetric, 0.75 * max_link_deg, 0.75 * max_link_m):
             # the other chain lost the object: this one may have drifted too, so only a link two hand
-            # placements could explain is taken (measured, v5 mug seed 1: the backward chain jumped 20 deg,
-            # the forward one arrived 7 deg drifted and its link alone put a third of the sequence 7 deg
-            # off the rest; v5 bowl seed 0: a single 6.0 deg link was right)
+            # placements could explain is taken (a drifted chain's link alone can turn a third of a sequence
+            # several degrees off the rest; a right single link can be as large as 6 deg, 3/4 of the default bound)
             estimates = []
         if len(estimates) == 2 and not _small(np.linalg.inv(estimates[0]) @ estimates[1], symmetric, max_link_deg, max_link_m):
             estimates = []  # the two chains tell different stories: neither is trusted
@@ -419,7 +405,7 @@ def _anchor_links(anchors, placed, forwards, backwards, symmetric, max_link_deg,
         spins = [np.eye(3)] * len(estimates)
         if symmetric:
             # the spin about the axis is free: a chain may arrive spun by phi about it, X = E_(k+1)^-1 S E_k
-            # (S = Ry(phi), measured 10-99 deg on v5 bottles, bowls and cans). Taken out on the right,
+            # (S = Ry(phi), often tens of degrees on bottles, bowls and cans). Taken out on the right,
             # X Ry(-phi) = E_(k+1)^-1 (S E_k S^-1): anchor k's error is seen turned by S, tilt and offset alike
             spun = [closest_about_y(e[:3, :3], np.eye(3)) for e in estimates]  # e Ry(theta), theta ~ -phi
             spins = [R.T @ e[:3, :3] for e, R in zip(estimates, spun)]  # Ry(-theta) = S
@@ -457,9 +443,8 @@ def _meeting_link(forward: dict[str, FrameResult], backward: dict[str, FrameResu
     Between the anchors, both chains on the object differ by X = E_b^-1 E_a (``inv(backward) @ forward``)
     plus the drift each gathered on the way, which stays smaller where they meet than at the far anchor
     a lost or drifted chain never reached. That drift is as large as the hand placements' own differences
-    (1-3 deg): the link's weight says so (``MEETING_LINK_SIGMA``). Measured on v5 sequences, links left out
-    before: mug seed 1, anchors 35 -> 66 (forward chain lost after 3 frames, backward one 19 deg off at
-    35): the chains met at frame 38; bowl seed 1, 4 -> 35.
+    (1-3 deg): the link's weight says so (``MEETING_LINK_SIGMA``). Without it, a stretch whose one chain is lost
+    early and whose other arrives far off at the far anchor has no link at all.
     """
     inner = list(forward)[1:-1]  # at the anchors the chains' links were judged already
     both = [f for f in inner if f in backward and forward[f].ok and backward[f].ok]

@@ -71,41 +71,33 @@ def refine_all(
 
     With ``placed`` (manual frame -> its placed box, 4x4; at least 3), a round that leaves the manual frames more
     than ``config.max_anchor_bend_deg`` further from fitting their placed boxes as one object frame than before the
-    rounds (:func:`anchor_bend`) bent the sequence: it is undone and the rounds end. Measured (v5 seeds 0-3, 4 manual
-    frames off by up to 3 deg): over 24 sequences the joint refinement changed the bend by -0.8 to +1.2 deg but
-    in two. Camera seed 3: round 1 took it from 2.31 to 4.94 deg (two stretches turned 2-5 deg against the rest);
-    undone, median / p90 2.01 / 2.53 -> 1.38 / 1.91 deg. Mug seed 3: round 2, 3.13 -> 5.67 deg; undone, its median
-    1.28 -> 1.00 deg but its p90 2.90 -> 3.56 (frames 0-20, flagged: the later re-registration of the suspect
-    frames picks their free spin by chance). With 3 manual frames off by up to 5 deg, mug seed 1's round 1 took it
-    from 2.23 to 4.28 deg and helped (undone at a limit of 2 deg, median / p90 2.21 / 4.55 -> 3.14 / 7.89): placed
-    boxes off by more leave more of their own error, hence 2.5 deg.
+    rounds (:func:`anchor_bend`) bent the sequence: it is undone and the rounds end. The joint refinement changes
+    that fit by about a degree either way; a round that turns whole stretches a few degrees against the rest changes
+    it by more. Boxes placed further off leave more of their own error in it, and a limit of 2 deg also undid a
+    round that helped: hence the default of 2.5 deg.
 
     With ``settled`` (deg, m), the rounds stop early once a round moved the frames' poses by less
     than both in the median (the model of the next round would be the same model): a laptop's
     first round moves its frames by 0.07 deg / 0.3 mm in the median, a shallow bowl's by 1.1 deg.
 
     The model is built from the frames that are not suspect (registration failed, or the chains
-    disagree), or, when fewer than a quarter are, from the quarter whose chains agree best
-    (measured on a v5 laptop, seed 1: 78 of 100 frames suspect; the model of all frames held
-    frames whose chains had slid up to 100 mm along the hinge, and left the rotation at
-    1.71/3.12 deg median/p90; the best quarter's model 0.82/1.42 deg). A suspect frame also
-    starts from the last refined pose that fits (``config.min_fitness``) and its constant-velocity prediction, the
-    best-fitting start kept, so a chain that lost the object is repaired against the whole model; in the first round
-    only (later rounds start from the repaired pose: measured on 24 v5 sequences, the same failing goal checks within
-    one, rotation p90 sum 49.7 -> 47.7 deg, and a laptop's refinement 492 -> 346 registrations, 143 -> 126 ms per
-    frame).
+    disagree), or, when fewer than a quarter are, from the quarter whose chains agree best (a model of all
+    frames would hold frames whose chains slid far along a laptop's hinge, and leave the rotations further off).
+    A suspect frame also starts from the last refined pose that fits (``config.min_fitness``) and its
+    constant-velocity prediction, the best-fitting start kept, so a chain that lost the object is repaired against
+    the whole model; in the first round only (later rounds start from the repaired pose: as accurate, with fewer
+    registrations).
     A frame whose registration fails keeps its pose and figures (with the failure noted), and so
     does one that a round would turn by more than ``config.max_refine_step_deg`` or move by more
     than ``config.max_refine_step_m`` without fitting the same points clearly better
     (``config.refine_step_fitness_gain``; noted as ``refine_rejected_deg`` / ``_m``); for symmetric
     objects, the same holds for the rounds together against the chains' pose (:func:`far_from_chains`),
     and a better fit does not count when the moved pose puts more of the model where the frame sees
-    through it (``config.max_refine_through_gain``; measured on a v5 bowl, seed 1: a hand cupping the
-    bowl from below fits a slid bowl 0.05-0.13 better, while the frame sees through 26-33% of the slid
-    model against 9-13% at the chains' pose).
-    Measured on a v5 mug (seed 1), the model of all frames let 40 frames
-    slide 50-170 deg about the bottom's normal with fitness 0.8-1.0 (even starting from the true
-    pose), while the chains had them within 5 deg; a v5 laptop's 10-20 deg corrections fit better.
+    through it (``config.max_refine_through_gain``: a hand cupping a bowl from below fits a slid bowl
+    better, while the frame sees through much more of the slid model than at the chains' pose).
+    The limits are there because the model of all frames lets frames slide far along what it does not pin
+    down, at a high fitness (a mug's bottom, a disc, fits any spin, even from the true pose), while the
+    chains' real corrections (a laptop's, of 10-20 deg) fit clearly better.
     """
     config = tracker.config
     origin = {f: r.pose for f, r in results.items()} if origin is None else {f: origin.get(f, r.pose) for f, r in results.items()}
@@ -144,12 +136,11 @@ class _Settler:
     A suspect frame's extra starts are its predecessors' outcomes (the last two refined poses that fit), so those
     frames are settled in order. But an outcome that is not a suspect frame's needs nothing of the frames before
     it: once two such frames were kept after a suspect one, the frames after them depend on nothing before. The
-    frames are cut there into stretches that each run in order, independently of the others (measured: v5 laptop
-    seed 2, 62 suspect frames in 4 stretches; its two first rounds, the coarse one and the fine one, ran up to 248
-    such registrations in the parent process: the parent's 256 registrations took 3.8 s of a 15 s run on two cores).
+    frames are cut there into stretches that each run in order, independently of the others (otherwise a laptop
+    with many suspect frames runs hundreds of such registrations one after the other in the parent process).
     Where there are several cores, a suspect frame's starts run on the workers at once (workers.TaskPool): the
-    stretches themselves on the workers left one core idle while the longest ran (v5 laptop seed 2: the coarse round
-    4.39 -> 3.56 s). The outcome is the same as in one loop, bit for bit.
+    stretches themselves on the workers left one core idle while the longest ran. The outcome is the same as in
+    one loop, bit for bit.
     """
 
     def __init__(self, tracker: Tracker, results: dict[str, FrameResult], own: dict[str, FrameResult], origin: dict[str, np.ndarray],
@@ -164,8 +155,7 @@ class _Settler:
         stretches = self._stretches(ids)
         if workers > 1 and any(s[2] for s in stretches):
             # a suspect frame's starts on the workers at once, frame after frame: the stretches on the workers left
-            # a core idle while the longest one ran its frames in order (measured: v5 laptop seed 2, 6.4 s of wall
-            # time for 8.5 s of CPU in these maps)
+            # a core idle while the longest one ran its frames in order
             register = lambda frame_id, init: self.tracker.register(frame_id, init, self.model, self.hits)  # noqa: E731
             with TaskPool(register, workers) as pool:
                 runs = [self._run(s, pool.map) for s in stretches]
@@ -262,10 +252,7 @@ def anchor_bend(results: dict[str, FrameResult], placed: dict[str, np.ndarray], 
 
     Poses consistent with the truth leave each manual frame its own placement error against the mean of them all
     (at most the placement error: 3 deg in the issue's setting); a refinement that bends the sequence (one stretch
-    turned against another) adds the bend. Measured after the joint refinement (v5, seeds 0-3, 4 manual frames off
-    by up to 3 deg): 0.8-3.1 deg in 22 of 24 sequences, 6.2 (camera seed 3) and 5.7 (mug seed 3) where the fine
-    rounds turned two stretches 2-5 deg against the rest; after the coarse round, 0.6-2.8 deg in all 24 (those two
-    2.3 and 2.5).
+    turned against another) adds the bend, which can double it.
     """
     ids = [m for m in placed if m in results]
     tracked = {m: results[m].pose for m in ids}
@@ -282,17 +269,11 @@ def coarse_round(tracker: Tracker, results: dict[str, FrameResult], anchors: lis
     twice coarser model the copies merge into one detail at their mean, and every frame is pulled towards it; the
     usual rounds then settle the frames on the sharp model. A move in this round beyond ``coarse_step_deg`` /
     ``coarse_step_m`` is turned down whatever the fit (a coarse mug body fits any spin where the handle is hidden:
-    measured with 3 manual frames off by up to 5 deg, v5 mug seed 0, frames 42-48 turned 17-33 deg off without the
-    limit). Poses only: a frame whose registration fails here keeps its pose, and the figures are the usual
-    rounds' to measure (the coarse distances are not the thresholds').
+    without the limit, frames turned tens of degrees off). Poses only: a frame whose registration fails here keeps
+    its pose, and the figures are the usual rounds' to measure (the coarse distances are not the thresholds').
 
-    Measured (v5, 24 sequences, 4 manual frames off by up to 3 deg / 5 mm / 8%): sums of the rotation medians /
-    p90s / centre medians 22.34 / 44.18 deg / 41.91 mm -> 20.96 / 41.42 / 43.17, failing goal checks 11 -> 10 of
-    120 (laptop seed 1 median 1.56 -> 1.40, mug seed 3 median 1.89 -> 1.26; mug seed 3 centre 2.88 -> 3.21 mm);
-    3 manual frames off by up to 5 deg: p90 sum 83.2 -> 69.9 deg, failing 24 -> 22 of 96, no unflagged frame
-    > 10 deg either way. Time: a laptop 110-133 ms per frame (88-124 without), a bowl 68-80 (63-75).
-    Two coarse rounds: 22.72 / 44.30 / 47.57, 15 failing. A 1.5 times coarser model: 22.23 / 43.44 / 41.29 (one frame 10.4 deg
-    off unflagged with 3 frames off by up to 5 deg); the coarse round without the step limits: the same frame.
+    The round lowers the rotation errors and fails fewer goal checks; the centres move little, and a laptop takes
+    about a fifth longer. Two coarse rounds, or a model 1.5 times coarser instead of twice, do no better.
     """
     config = tracker.config
     voxel = config.coarse_voxel()
@@ -329,9 +310,9 @@ def large_step(deg: float, metres: float, config) -> bool:
     """Whether a joint-refinement round's change of a frame's pose (degrees, metres) is beyond the
     configured steps (``max_refine_step_deg``, ``max_refine_step_m``; 0: no limit) and must fit clearly better.
 
-    Measured on a v5 laptop (seed 1): against a model smeared by frames whose chains had slid along
-    the hinge, a round moved frames that were within 20 mm a further 60-90 mm along it (the two
-    planes fit any position along the hinge), with a fitness no better; rotation stayed within 4 deg.
+    Against a model smeared by frames whose chains had slid along a laptop's hinge, a round can move frames that
+    were close a further several centimetres along it (the two planes fit any position along the hinge), with a
+    fitness no better and the rotation nearly unchanged.
     """
     return (config.max_refine_step_deg > 0 and deg > config.max_refine_step_deg) or (config.max_refine_step_m > 0 and metres > config.max_refine_step_m)
 
@@ -340,9 +321,9 @@ def far_from_chains(deg: float, metres: float, config) -> bool:
     """Whether the rounds so far took a symmetric object's frame (degrees between the axes, metres) beyond
     ``config.max_refine_departure_deg`` / ``_m`` of the chains' pose (0: no limit): it must then fit clearly better.
 
-    Each round's step stays within ``large_step``, but the rounds add up. Measured on a v5 bowl (seed 1),
-    where the hand hid half the bowl: two rounds slid frames 38-47 from the chains' 1.4-3.3 deg and 5-8 mm
-    to 5-15 deg and 10-23 mm off (a near-sphere fits any tilt), and the smoothing carried the rest along.
+    Each round's step stays within ``large_step``, but the rounds add up: where the hand hides half of a bowl, a
+    few rounds can slide frames from within a few degrees to several times as far off (a near-sphere fits any
+    tilt), and the smoothing carries the rest along.
     """
     return (config.max_refine_departure_deg > 0 and deg > config.max_refine_departure_deg) or (config.max_refine_departure_m > 0 and metres > config.max_refine_departure_m)
 
@@ -405,8 +386,8 @@ def recheck_disagreements(
     from the final pose (the original kept as ``chain_disagreement_before_deg`` / ``_m``);
     otherwise the frame keeps the chains' figures (and its flag), also when no run of cleared frames
     joins it to a frame that was never suspect (:func:`_vouched`). A frame whose final pose jumps
-    away from the midpoint of its neighbours' keeps them too (measured: a bowl frame slid 40 mm
-    along the model where the hand hid most of it, and no restart found a better fit).
+    away from the midpoint of its neighbours' keeps them too (a bowl frame can slide centimetres along
+    the model where the hand hides most of it, and no restart finds a better fit).
     """
     config = tracker.config
     todo = [f for f, r in results.items() if f in chain_poses and r.ok and suspect(r, config)]
@@ -465,22 +446,15 @@ def reregister_suspects(tracker: Tracker, results: dict[str, FrameResult], model
     correction). Poses only: the figures and flags stay the chains' (these frames stay flagged). Frames in ``skip``
     (the manual ones) are left alone.
 
-    Measured with ``bench_tracking.py --reconstruct`` on the v5 sequences (seeds 0-3, 4 manual frames off by up to
-    3 deg / 5 mm / 8 %): mug seed 2, frames 35-61 (the chains 22-38 deg apart) went from 5-9.6 deg to 0.3-6.6 deg
-    off, its p90 7.54 -> 4.00 deg (5.11 with a 10 deg step limit: frames 41-47 moved 10.3-12 deg); bowl seed 1
-    median / p90 1.42 / 2.41 -> 1.24 / 2.05 deg; mug seed 3 p90 2.08 -> 2.36 deg; laptop seed 1 F@5mm 0.828 ->
-    0.834; the camera, can and bottle sequences have no such frames and are unchanged. Sums over the 24 sequences:
-    rotation median 20.39 -> 20.08, p90 40.07 -> 36.48 deg, centre 41.38 -> 41.32 mm.
+    It brings back stretches of frames whose chains disagreed by tens of degrees and which the smoothing left
+    several degrees off. Its step limit is wider than the rounds' (``max_suspect_step_deg``): such frames can need
+    a turn of more than 10 deg.
 
-    Where the spin is free it also moves frames the smoothing had right: mug seed 3's frames 6-14 came out of the
-    smoothing within 2.2 deg and were turned 4-11 deg about the axis, with 4-9 mm along it. Measured and not kept
-    (mugs, seeds 0-3, same setting), because mug seed 2's frames 35-54 need the same kind of move (the smoothing
-    carried them 8-10 deg off from neighbours that were, and the move of 4-12 deg and 4-10 mm brings them back):
-    - keeping the move only where the fitness of the same points rises by 0.02: seed 3 p90 3.60 -> 2.58 deg, seed 2
-      2.98 -> 6.60 (the fitness rises by under 0.01 in both);
-    - keeping the smoothed pose along the directions the move's information leaves weak (eigenvalues under 5 % of
-      the strongest, rotation scaled by half the largest extent; the spin's ratio is 0.006-0.04 in both seeds):
-      seed 3 p90 3.60 -> 3.25, seed 2 2.98 -> 7.60.
+    Where the spin is free it also moves frames the smoothing had right, turning them several degrees about the
+    axis. That is accepted, as frames the smoothing carried off need the same kind of move, and both ways of telling
+    them apart that were tried held the needed moves back as well: keeping the move only where the fitness of the
+    same points rises (by 0.02; it rises by under 0.01 in both kinds of frames), and keeping the smoothed pose
+    along the directions the move's information leaves weak (the spin is weak in both).
     """
     config = tracker.config
     todo = [f for f, r in results.items() if f not in skip and r.ok and suspect(r, config)]
@@ -500,9 +474,8 @@ def reregister_suspects(tracker: Tracker, results: dict[str, FrameResult], model
 def _vouched(rechecked: dict[str, FrameResult], before: dict[str, FrameResult], order: list[str], never_suspect: set[str]) -> dict[str, FrameResult]:
     """The recheck's clearances that neighbours vouch for: a cleared frame keeps its new figures only when
     a run of cleared frames joins it to a frame in ``never_suspect`` (registered, chains agreeing). Its
-    smoothness with neighbours that stay suspect, or failed, says nothing (measured: v5 mug seed 3,
-    frame 22, 19 deg off like its flagged neighbours 21 and 23, every restart landing on the same
-    wrong minimum of the model)."""
+    smoothness with neighbours that stay suspect, or failed, says nothing (a frame as far off as its flagged
+    neighbours is smooth with them, and every restart can land on the same wrong minimum of the model)."""
     cleared = {f for f in rechecked if rechecked[f] is not before[f]}
     kept: set[str] = set()
     # two sweeps reach every run of cleared frames from either end
@@ -596,12 +569,10 @@ def undo_smoothing_bends(tracker: Tracker, refined: dict[str, FrameResult], smoo
     (:func:`_fitness_pair`), higher by ``config.smoothing_undo_gain``). Figures stay.
 
     The smoothing gives no evidence to a frame whose chains disagreed; a long run of such frames is then bent only
-    by the acceleration prior between the evidence on either side, linearised about poses that may jump. Measured:
-    v5 mug seed 0, 3 manual frames off by up to 3 deg: frames 16-40 all without evidence, the refinement had 24-40
-    within 0.5-1 deg, the smoothing bent them up to 28 deg off (fitness 0.22-0.43 against 0.53-0.83 at the refined
-    poses); p90 15.7 -> 1.7 deg with this. A larger turn is a flip, not a bend, and a mug's body fits itself
-    flipped: mug seed 1's refinement had frames 20-50 113-170 deg off at fitness 0.55-1.0 (0.34-0.86 at the
-    smoothed poses, 1.5-12.7 deg off); without the upper limit its p90 went 7.7 -> 153 deg.
+    by the acceleration prior between the evidence on either side, linearised about poses that may jump, and can
+    come out tens of degrees off where the refinement had it right and fitting clearly worse. A turn beyond
+    ``smoothing_undo_max_deg`` is a flip, not a bend: a mug's body fits itself flipped, so there the refined pose
+    may be the flipped one, fitting as well, while the smoothing had the frame right.
     """
     config = tracker.config
     if config.smoothing_undo_deg <= 0:
@@ -626,10 +597,10 @@ def refinement_confirmed(tracker: Tracker, results: dict[str, FrameResult], chai
     """Frames whose chains disagree but whose refined pose fits and lies within the chain-disagreement
     thresholds of the pose the chains gave them (``chained``, 4x4): the model of all frames confirmed it.
 
-    Measured on v5 sequences: a laptop (seed 0) whose chains disagreed by 10-15 mm over frames 75-90
-    was refined to within 0.8-1.3 deg there, and interpolating those 16 frames from their neighbours
-    turned them 4-10 deg off; a shallow bowl (seed 1) was refined 14-56 deg away from chains that had
-    it within 3 deg (a slide on a near-sphere), and those frames are better interpolated.
+    Such a frame keeps its information in the smoothing: interpolated from its neighbours, a laptop frame whose
+    chains disagreed by a centimetre and whose refinement had it right can turn several degrees off. A refined pose
+    far from the chains' (a shallow bowl refined tens of degrees away from chains that had it right: a slide on a
+    near-sphere) is better interpolated.
     """
     config = tracker.config
     out = set()
@@ -655,11 +626,9 @@ def repair_flips(tracker: Tracker, results: dict[str, FrameResult], anchors: lis
     frame's pose, to the model of the trusted frames; where that lands more than ``FLIP_DEG`` away again (or fails), the
     frame takes that pose as it is. Poses only, with the turn noted as ``flip_repaired_deg`` (a flag reason).
 
-    Measured on a v5 bottle (seed 0, 3 manual frames off by up to 3 deg / 5 mm / 8 %): the chains between manual
-    frames 3 and 50 lost the bottle (117-180 deg apart), the joint refinement brought every frame back but 26 and the
-    odd frames 37-47, left upside down (a bottle's ends fit each other's place, at fitness 0.65 against 0.36), and the
-    smoothing then averaged their neighbours with them: frames 25-32 went from within 1 deg to 35-77 deg off, and the
-    sequence's 90th percentile to 49 deg.
+    Where the chains lose a bottle, the joint refinement can leave single frames upside down (a bottle's ends fit
+    each other's place, even better than the right pose), and the smoothing then averages their neighbours with
+    them, turning frames that were right tens of degrees off.
     """
     order = list(results)
     config = tracker.config
@@ -716,14 +685,13 @@ def recheck_single_chains(
     of the two poses before it (its own, from the manual frame on), so it carries the motion seen
     inside the span outward; the first chain started from the young model of the manual frame
     alone. Where the two land more than the chain-disagreement thresholds apart, the frame's
-    ``chain_disagreement_deg`` / ``_m`` say so (and flag it). Measured: a bowl's only chain slid
-    8-16 deg off in the two frames before its first manual frame, with fitness still above 0.5.
+    ``chain_disagreement_deg`` / ``_m`` say so (and flag it): a single chain can slide several degrees
+    off in the frames before its first manual frame, with its fitness still above 0.5.
     Unless the second chain is no rival: where the final pose, registered to the same model, fits
     clearly better (``RIVAL_FITNESS_MARGIN``), the second chain sits in a worse minimum; the figures
     are then the final pose's own re-registration (``second_chain_fitness`` kept) and the chain goes
-    on from there. Measured on the report's mug (3 boxes off by up to 5 deg, frames 1-15 before the
-    first): a second chain 50-80 deg off flagged all 15, which then left a hand remnant in the carving
-    (the mesh 1.8 cm too tall); with the test 10 of them are flagged and the mesh is 5 mm too tall.
+    on from there. A lost second chain would otherwise flag frames that are right, and with them
+    flagged the carving leaves a hand remnant (the mesh too tall).
     ``model``: :func:`trusted_model` of ``results`` when the caller has it already.
     """
     config = tracker.config

@@ -20,30 +20,23 @@ off): a frame sees only surfaces that face its camera, so a point-to-plane pair 
 away from the camera at the current pose is dropped (icp.correspondences). The model's normals are
 turned towards the cameras that saw each voxel (model.ObjectModel keeps their mean direction), so no
 frame normals are estimated (PCA frame normals cost 2.5 s per laptop sequence). This tells the two
-sides of a thin wall apart: a v5 laptop's chains slid along its up axis by the base's thickness
-(16.8 mm; the keyboard face paired with the model's underside at fitness 0.87-0.97), and with the
-test they do not (tests: a 6 mm slab seen from below slides 6 mm without it, under 0.1 mm with it).
+sides of a thin wall apart: without it a laptop's chains slid along its up axis by the base's thickness
+(the keyboard face paired with the model's underside, at a high fitness), and with the test they do not
+(tests: a 6 mm slab seen from below slides 6 mm without it, under 0.1 mm with it).
 A stage then also ends once an iteration moves the pose by less than 0.1 mm and 0.017 deg (pairs at
-grazing angles toggle, and fitness never settles). Measured over v5 seeds 0-3 (24 sequences, 4 manual
-frames off by up to 3 deg / 5 mm / 8%, with reconstruct-sequence): failing goal checks 16 -> 12 of 120,
-sums of the rotation medians 23.4 -> 22.3 deg and of the centre medians 50.3 -> 43.1 mm, posed-mesh
-F@5mm laptop 0.97/0.40/0.34/0.83 -> 0.95/0.48/0.89/0.97 and bowl (seed 1) 0.83 -> 1.00, laptop 97-134
-ms per frame against 121-142 without; but the sum of the p90s 47.6 -> 52.9 deg (laptop seed 2 2.40 ->
-7.52). With 3 manual frames off by up to 5 deg (all 24 sequences) the failing checks stay at 30, the
-p90 sum falls 181 -> 116 deg, and unflagged frames > 10 deg go from 2 to 9 (a bowl whose frames were
-taken from the one chain that had lost it, a weakness of the seam, not of the pairs). The test is not
-applied in the chains of an object without symmetry whose placed frames' model is nearly round (engine: a
-mug, its chains then lost the spin where the handle was hidden, seed 1 p90 4.2 -> 47 deg; a camera, nearly
-round by that test too, failed 2 goal checks with it against 1 without); its joint refinement applies it
-(engine.py: a mug's inner bottom paired with the outer one).
+grazing angles toggle, and fitness never settles). With the test fewer goal checks fail and the centres
+lie closer, most of all on laptops; a few more frames can come out far off where they are taken from the
+one chain that lost the object (a weakness of the seam, not of the pairs). The test is not applied in the
+chains of an object without symmetry whose placed frames' model is nearly round (engine: a mug, its chains
+then lost the spin where the handle was hidden; a camera, nearly round by that test too, failed more goal
+checks with it); its joint refinement applies it (engine.py: a mug's inner bottom paired with the outer one).
 
-Measured and not kept: ``colored`` as the default (v5 seed 0: mug 1.29/3.82 -> 1.58/4.03 deg
-median/p90, laptop 98 -> 681 ms per frame; seed 1 mug p90 67.5 deg), and, in an earlier form of the
-facing test (frame normals estimated, an opposite-facing nearest point replaced by the nearest facing
-candidate), the laptop of seed 1 went from 1.54 to 31-178 deg p90 at 202-227 ms per frame. ``colored`` on the
-v5 laptops of seeds 1 and 2 (whole pipeline): centre medians 3.81 / 3.12 -> 9.18 / 4.00 mm at 292 / 453 ms per
-frame; and as a last step for laptop seed 1's frames 41-84 (4 mm off in y), each registered with colour to the
-model of the other frames: frames 50-78 jumped 16-20 mm in y, to the next of the label's stripes.
+Not used: ``colored`` as the default (no more accurate, a mug's run lost the object, and a laptop several
+times slower), nor an earlier form of the facing test (frame normals estimated, an opposite-facing nearest
+point replaced by the nearest facing candidate), which lost a laptop and was slower. ``colored`` on the
+laptops, through the whole pipeline, left the centres further off and took two to three times as long; as a
+last step for a stretch a few mm off, each frame registered with colour to the model of the other frames, it
+made the frames jump to the next of the label's stripes.
 """
 
 from __future__ import annotations
@@ -58,7 +51,7 @@ from annotate.workers import open3d_threads  # noqa: F401  (re-exported: the eng
 
 from . import icp
 
-#: The side of the ICP's search grid's cells, in model voxels (measured: icp.py's module doc).
+#: The side of the ICP's search grid's cells, in model voxels (the fastest: icp.py's module doc).
 GRID_CELL_VOXELS = 3.0
 
 #: Below this many points on either side a registration is not attempted (too few to fix 6 DoF robustly).

@@ -3,9 +3,9 @@
 Point-to-plane ICP pins a pose down only across the surfaces it sees. A laptop seen from behind is
 two planes: sliding it along its hinge moves every frame point along those planes, and the points
 that then stick out beyond the model's edge are further than the correspondence distance, so they
-drop out of the objective instead of pulling the pose back. Measured on a v5 laptop (seed 1): both
-chains, the joint refinement and the smoothing held frames 42-58 8-29 mm off along the hinge with
-rotation within 1 deg, and ICP started from those poses stayed there even against the true mesh.
+drop out of the objective instead of pulling the pose back. The chains, the joint refinement and
+the smoothing can all hold a stretch of frames centimetres off along the hinge with the rotation
+right, and ICP started from those poses stays there even against the true mesh.
 
 What does see the slide is how many of the frame's points lie on the model at all (the fitness),
 counted on a crop a few centimetres wider than the box, so that the part of the object that the slid
@@ -15,25 +15,17 @@ that direction over a grid, and where the fitness rises clearly (``min_slide_gai
 ``min_slide_m`` the frame takes the centre of the best shifts, provided that the fitness falls again beyond
 them (a peak, both edges seen: with one edge hidden by the hand every shift past it fits alike).
 
-Measured with ``benchmarks/bench_tracking.py --reconstruct`` on the v5 sequences (seeds 0-3, all six categories,
-4 manual frames off by up to 3 deg / 5 mm / 8 %): 26 frames moved (25 of the laptops, 1 of a mug), 23 of them
-closer to the truth: laptop seed 1, frames 44-58, 12-29 mm -> 4-9 mm (none of them flagged); seed 0, frames 74-84
-(flagged), 18-68 mm -> 1-38 mm; seed 2, frames 0-2, 7-25 mm -> 2-3 mm. Three moved further: laptop seed 1 frame 82
-(flagged), 10 -> 15 mm; laptop seed 2 frame 26, 10 -> 24 mm, where the fitness of the wider crop peaks only 0.024
-above its value 15 mm further out (refused since: that slide takes it off its neighbours' path, and it is flagged,
-:func:`against_the_motion`); mug seed 2 frame 51 (flagged, 5.8 deg off), 0.8 -> 5.9 mm. The laptops' median centre errors move little (seed 2: 3.27 -> 3.17 mm): the frames off by 3-4 mm that set them
-are not slid. A search over +-6 cm without the end-of-range rule also moved laptop seed 2 frame 15 14 -> 75 mm and
-frame 26 10 -> 32 mm. The peak test changed one benchmark frame only, and not for the better: laptop seed 0 frame 81
-(flagged) stays 66 mm off, where without it the frame went to 35 mm; it is kept for the case the unit test renders (one
-edge hidden: any shift past the seen edge fits alike). Time: about 20 ms
-CPU per laptop frame (most are checked; 800 points of the crop, 62 shifts): bench CPU per frame 119-143 -> 122-155 ms.
+Most of the slides it takes, nearly all of them a laptop's, bring frames closer to the truth. A best shift
+at the end of the range is no peak (a wider search without that rule sent frames several centimetres off).
+The peak test is for the case the unit test renders (on the benchmark sequences it changes little): with one
+edge hidden, any shift past the seen edge fits alike. A slide that takes a frame off its neighbours' path is
+refused and the frame flagged (:func:`against_the_motion`). Time: about 20 ms CPU per laptop frame (most are
+checked; at most ``MAX_SEARCH_POINTS`` points of the crop, on a coarse and a fine grid of shifts).
 
-The laptops' centre errors of 3-4 mm come from whole stretches, not from slides this check could take. Measured
-(v5 laptops, seeds 0-3, 4 manual frames): ``min_slide_m`` of 3 or 2 mm moves no frame; with the hand cut out of
-the depth images by the truth masks, seeds 1 and 2 go from 3.81 / 3.12 to 6.11 / 3.82 mm (the hand is not what
-holds a stretch off). Laptop seed 1's frames 41-84 are 4 mm off in y with their manual frame (66), and the model
-of frames 41-66 shares no surface with frames 0-24 or 85-99 that faces the same way: only the regrasps between
-them (frames 29-40, 63-72), whose chains are lost, join that stretch to the rest.
+A whole stretch a few mm off with its manual frame is not a slide this check sees: a ``min_slide_m`` of 2 or
+3 mm moves no frame, and the hand is not what holds such a stretch off. Where a stretch's model shares no
+surface facing the same way with the rest of the sequence, only the regrasps between them, whose chains are
+lost, join it to the rest. A hinged body's frames are moved along the hinge by centring.py.
 """
 
 from __future__ import annotations
@@ -134,8 +126,8 @@ def slide_corrections(tracker: Tracker, results: dict[str, FrameResult], target:
         wide = every_kth(wide, MAX_SEARCH_POINTS)
         wide_local = untransform(pose, wide)
         shift, fitness, at_zero, beyond = best_shift(wide_local, target, direction, config.max_slide_m, distance)
-        # a best shift at the end of the range is no peak found (measured: with a +-6 cm range and no such rule, laptop
-        # seed 2 frame 15 went 14 -> 75 mm), nor one on a plateau that only one edge bounds (the far edge hidden)
+        # a best shift at the end of the range is no peak found (a wider range without this rule sent frames several
+        # cm off), nor one on a plateau that only one edge bounds (the far edge hidden)
         peak = abs(shift) <= config.max_slide_m - 2 * COARSE_STEP_M and fitness - beyond >= config.min_slide_gain / 2
         if peak and abs(shift) >= config.min_slide_m and fitness - at_zero >= config.min_slide_gain:
             return shift * direction
@@ -151,13 +143,8 @@ def against_the_motion(results: dict[str, FrameResult], slides: dict[str, np.nda
     away from a smooth path. A run of slid frames moves together and keeps its neighbours' support. Neighbours in
     ``doubtful`` (their chains disagreed) judge nothing.
 
-    Measured on the v5 sequences (seeds 0-3, 4 manual frames off by up to 3 deg / 5 mm / 8 %): of the 28 laptop
-    slides proposed (seeds 0-2: 7, 15, 6), it refuses one, laptop seed 2 frame 26 (1-based 27), which stays 10 mm
-    off instead of going to 24 mm, and is flagged; laptop seed 1's run of 15 slid frames (12-29 -> 4-9 mm) keeps
-    them all. Judged by every neighbour, it also refused laptop seed 0 frames 75 and 83 (flagged, neighbours 45 mm
-    off), whose slides are right (29 -> 1-2 mm). With 3 manual frames off by up to 5 deg it refuses 9 slides: 7 of
-    them wrong (bottle seed 2 frame 87, unflagged, 24 -> 5 mm, now flagged; laptop frames 9-29 -> 2-8 mm), 2 right
-    (laptop seed 1 frames 55 and 72: 4 -> 7 and 5 -> 25 mm, both flagged now); failing checks 13 of 96 either way.
+    Judged by every neighbour, it refused right slides next to neighbours that were far off themselves: hence
+    ``doubtful``. Most of the slides it refuses are wrong; the few right ones cost their frames a flag.
     """
     order = list(results)
     centre = {f: shifted(r.pose, slides[f])[:3, 3] if f in slides else r.pose[:3, 3] for f, r in results.items()}
