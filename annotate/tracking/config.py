@@ -58,7 +58,6 @@ class TrackingConfig:
     manual_translation_sigma: float = 0.002  #: how far a placed box's centre is off, per axis, m (both must be > 0 for the pull)
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
     body_axis_snap: bool = True  #: near-round objects without symmetry (a mug): turn the box's y onto the body's axis fitted to the model, about the box centre
-    max_axis_offset_m: float = 0.01  #: ... by at most this (m; further means the wall is not the body's)
     max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
     face_snap: bool = True  #: box-like objects (a camera): turn the box onto the model's faces, about its centre (faces.py)
     min_face_share: float = 0.05  #: ... when each axis holds at least this share of the model's normals (a laptop's thin sides: 0.3-0.6 %)

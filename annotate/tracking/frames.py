@@ -28,7 +28,7 @@ class FrameStore:
     not the whole frame: a 10 cm object covers a few percent of the image. The last
     ``crop_cache`` crops are kept: the tracker crops the same frame at the same pose again (a
     model of the trusted poses is built twice between two pose updates, and the smoothing crops
-    the frames its model was just built from; measured on a v5 laptop: 164 of 1414 crops).
+    the frames its model was just built from).
 
     Once the poses are roughly known, :meth:`hold` keeps a wider voxelled crop per frame, and the later voxelled
     crops of that frame are cut from it: after the chains, a laptop frame is cropped some 15 more times at poses a

@@ -6,7 +6,7 @@ holds a point or two each, and the nearest points of a query lie in the cells ar
 visits the cells in shells of growing Chebyshev distance and stops once the k-th nearest point found is
 nearer than any cell not yet visited can be (or than ``reach``), so its answer is the exact k nearest,
 as scipy's KD-tree gives them (the same points and order but where two lie at the same distance).
-Measured on the queries of a v5 laptop run: see :class:`CellGrid`.
+Its speed against the KD-tree: see :class:`CellGrid`.
 """
 
 from __future__ import annotations
