@@ -58,7 +58,7 @@ class TrackingConfig:
     manual_translation_sigma: float = 0.002  #: how far a placed box's centre is off, per axis, m (both must be > 0 for the pull)
     symmetry_snap: bool = True  #: for symmetry y: snap the box's y axis to the axis estimated from the model
     body_axis_snap: bool = True  #: near-round objects without symmetry (a mug): turn the box's y onto the body's axis fitted to the model, about the box centre
-    max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry.fit_symmetry_axis)
+    max_axis_conditioning: float = 0.15  #: no snap when the axis fit is this ill-conditioned (symmetry_axis.fit_symmetry_axis)
     face_snap: bool = True  #: box-like objects (a camera): turn the box onto the model's faces, about its centre (faces.py)
     min_face_share: float = 0.05  #: ... when each axis holds at least this share of the model's normals (a laptop's thin sides: 0.3-0.6 %)
     min_faces_total: float = 0.5  #: ... and all six faces together at least this share (cameras 0.67-0.75; a mug's round side leaves 0.18-0.32)
@@ -76,7 +76,7 @@ class TrackingConfig:
     flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
     flat_cone_deg: float = 5.0  #: ... those within this of +-y
     min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals
-    flat_axis_centring: bool = True  #: ... and the box centre moved across y onto the symmetry axis along y (symmetry.fit_axis_point)
+    flat_axis_centring: bool = True  #: ... and the box centre moved across y onto the symmetry axis along y (symmetry_axis.fit_axis_point)
     max_axis_shift_m: float = 0.01  #: ... by at most this (m; further means the fit is not the object's)
     frame_tilt: bool = True  #: ... and then every frame's tilt measured from its own normals near y (tilt.py)
     min_tilt_normals: int = 20  #: ... where at least this many of a frame's normals lie within flat_cone_deg of y

@@ -31,10 +31,10 @@
 5. common frame: the consistent poses are moved by the one correction that best fits all the
    placed boxes (their errors average out; a manual frame whose shape leaves the spin free does not
    set it); for symmetry y, the box is snapped upright on the
-   axis estimated from the model (symmetry.py), unless the fit leaves the axis direction
+   axis estimated from the model (annotate/symmetry_axis.py), unless the fit leaves the axis direction
    undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), its centre moved across y
-   onto the axis the model's normal lines meet along that y (symmetry.fit_axis_point), and then each frame onto
+   onto the axis the model's normal lines meet along that y (symmetry_axis.fit_axis_point), and then each frame onto
    the normals of its own points near y, the median over +-6 frames (tilt.py);
    a near-round body without symmetry whose wall is a surface of revolution (a mug: _revolves) has its box's y
    turned onto the body's axis the same way, about
@@ -191,7 +191,7 @@ def _anchors(annotation: Annotation, ids: list[str]) -> list[str]:
 
 class _AxisFit(NamedTuple):
     """The symmetry axis fitted to a model: unit direction and point (object frame, m) and how ill-conditioned
-    the fit of its direction is (symmetry.fit_symmetry_axis)."""
+    the fit of its direction is (symmetry_axis.fit_symmetry_axis)."""
 
     axis: np.ndarray
     point: np.ndarray
@@ -294,7 +294,7 @@ def _snap_body_axis(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
 
 def _axis_of_revolution(points: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray | None:
     """The point (3,; its y 0) of the axis along y where the normal lines of ``points`` (N, 3, object frame) meet
-    (symmetry.fit_axis_point), where the wall is a surface of revolution about it (estimator.model.is_revolution);
+    (symmetry_axis.fit_axis_point), where the wall is a surface of revolution about it (estimator.model.is_revolution);
     None where the fit fails or the wall is not (a square bowl, a box, a banana)."""
     try:
         point, _ = fit_axis_point(points, normals, np.array([0.0, 1.0, 0.0]))
@@ -535,7 +535,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             poses = {f: p @ snap for f, p in poses.items()}
         if flat is not None and config.flat_axis_centring:
             # ... and its centre onto the axis along that y: a sphere's normal lines all meet at its centre, so the
-            # direction they leave free, not the axis's place (symmetry.fit_axis_point)
+            # direction they leave free, not the axis's place (symmetry_axis.fit_axis_point)
             shift = _flat_axis_shift(tracker, model, flat)
             if shift is not None:
                 poses = {f: p @ shift for f, p in poses.items()}
