@@ -331,30 +331,6 @@ def test_refinement_rounds_may_not_together_carry_a_symmetric_frame_far_from_its
     assert not far_from_chains(8.0, 0.014, TrackingConfig(max_refine_departure_deg=0, max_refine_departure_m=0))
 
 
-def test_a_pose_that_puts_the_model_where_the_frame_sees_through_it_is_measured():
-    from types import SimpleNamespace
-
-    from annotate.tracking.frames import FrameStore
-    from annotate.tracking.refine import _through_pair
-    from sequences.camera import Camera
-
-    class _Wall:  # every frame sees a flat wall 1 m away
-        camera = Camera()
-
-        def depth(self, frame_id: str) -> np.ndarray:
-            return np.full((self.camera.height, self.camera.width), 1.0, np.float32)
-
-        def color(self, frame_id: str) -> np.ndarray:
-            return np.zeros((self.camera.height, self.camera.width, 3), np.uint8)
-
-    tracker = SimpleNamespace(store=FrameStore(_Wall(), stride=2), config=TrackingConfig())
-    grid = np.stack(np.meshgrid(np.linspace(-0.03, 0.03, 7), np.linspace(-0.03, 0.03, 7), [0.0]), axis=-1).reshape(-1, 3)
-    target = SimpleNamespace(points=grid)  # a patch of model surface, object frame
-    on_wall, before_wall = np.eye(4), np.eye(4)
-    on_wall[2, 3], before_wall[2, 3] = 1.0, 0.95  # the patch on the wall, and 5 cm before it (the wall seen behind)
-    assert _through_pair(tracker, "0", on_wall, before_wall, target) == (0.0, 1.0)
-
-
 @pytest.mark.slow
 def test_worker_processes_give_the_same_document_as_one_process(scene, tracked, monkeypatch):
     import os

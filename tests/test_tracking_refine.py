@@ -8,11 +8,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_tracking_render import render_tracker
 
-from annotate.tracking import TrackingConfig
-from annotate.tracking.config import scaled_to
-from annotate.tracking.frames import FrameStore
-from annotate.tracking.refine import anchor_bend, coarse_round, refine_all
-from annotate.tracking.tracker import FrameResult, Tracker
+from annotate.tracking.refine import coarse_round, refine_all
+from annotate.tracking.tracker import FrameResult
 
 FRAMES = 24
 
@@ -73,56 +70,3 @@ def test_the_coarse_round_turns_down_a_move_beyond_its_step_limits_and_keeps_the
     # a model twice as coarse at the default limits; with the round switched off, nothing moves
     off = coarse_round(render_tracker(*scene[:2], coarse_voxel_factor=1.0), start, [ids[0], ids[-1]])
     assert all(off[f] is start[f] for f in ids)
-
-
-def _turned(deg: float, axis: str = "x") -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler(axis, deg, degrees=True).as_matrix()
-    return T
-
-
-def test_anchor_bend_is_the_worst_placed_box_left_once_all_share_one_correction():
-    rng = np.random.default_rng(0)
-    truth = {str(k): np.vstack([np.hstack([Rotation.random(random_state=k).as_matrix(), rng.normal(size=(3, 1))]), [0, 0, 0, 1]]) for k in range(3)}
-    # poses in another object frame (any common correction): no bend
-    common = _turned(20.0, "z")
-    common[:3, 3] = [0.01, -0.02, 0.03]
-    consistent = {f: FrameResult(T @ np.linalg.inv(common), True, {}) for f, T in truth.items()}
-    assert anchor_bend(consistent, truth, False) == pytest.approx(0.0, abs=1e-6)
-    # one of three turned 6 deg against the others: the mean correction takes a third of it, 4 deg stay at that one
-    bent = dict(consistent)
-    bent["2"] = FrameResult(consistent["2"].pose @ _turned(6.0), True, {})
-    assert anchor_bend(bent, truth, False) == pytest.approx(4.0, abs=0.01)  # scipy's chordal mean: 4.0008
-
-
-class _BendingTracker(Tracker):
-    """Registers every frame from ``turn_from`` on turned by ``deg`` about x (a round that bends the sequence)."""
-
-    turn_from, deg = 0, 0.0
-
-    def register(self, frame_id, init_pose, model, min_hits=1, refresh_every=1):
-        result = super().register(frame_id, init_pose, model, min_hits, refresh_every)
-        if int(frame_id) >= self.turn_from:
-            result = FrameResult(result.pose @ _turned(self.deg), result.ok, result.figures)
-        return result
-
-
-def test_a_round_that_bends_the_placed_boxes_apart_is_undone(scene):
-    sequence, mesh, truth = scene
-    ids = sorted(truth)
-    config = scaled_to(TrackingConfig(), mesh.extents)
-    tracker = _BendingTracker(FrameStore(sequence, config.stride, colors=False), mesh.extents, False, config)
-    tracker.turn_from, tracker.deg = int(ids[16]), 6.0
-    anchors = [ids[0], ids[8], ids[23]]
-    start = {f: FrameResult(truth[f].copy(), True, {"fitness": 0.9}) for f in ids}
-    placed = {m: truth[m] for m in anchors}
-    bent = refine_all(tracker, start, 1, anchors)
-    # without the placed boxes the turn stands: frames 16-23 6 deg off, the manual frame 23 among them
-    assert anchor_bend(bent, placed, False) > 3.5
-    kept = refine_all(tracker, start, 1, anchors, placed=placed)
-    assert all(np.array_equal(kept[f].pose, start[f].pose) for f in ids)
-    # a round that leaves the placed boxes consistent is kept (the turn is within the limit: 1 deg)
-    tracker.deg = 1.0
-    mild = refine_all(tracker, start, 1, anchors, placed=placed)
-    assert not np.array_equal(mild[ids[20]].pose, start[ids[20]].pose)
-    assert anchor_bend(mild, placed, False) < config.max_anchor_bend_deg

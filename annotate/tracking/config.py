@@ -38,8 +38,6 @@ class TrackingConfig:
     max_suspect_step_deg: float = 15.0  #: a frame still suspect after the recheck, registered once more to the trusted model, turns at most this far (refine.reregister_suspects)
     max_refine_departure_deg: float = 5.0  #: symmetric objects: rounds that together turn a frame's axis this far from the chains' pose
     max_refine_departure_m: float = 0.01  #: ... or move it this far (m) need that better fit too (0: no limit; refine.far_from_chains)
-    max_refine_through_gain: float = 0.05  #: symmetric objects: ... and may not leave this much more of the model seen through (0: off)
-    max_anchor_bend_deg: float = 2.5  #: a fine round leaving the manual frames this much further (deg) from fitting their placed boxes as one object frame is undone (refine.anchor_bend; 0: off)
     settled_deg: float = 0.2  #: ... fewer once a round moved the poses less than this in the median
     settled_m: float = 0.0005  #: ... and less than this (m)
     global_min_hits: int = 3  #: model voxels seen in fewer frames are left out (a moving hand)

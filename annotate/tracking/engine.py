@@ -8,8 +8,7 @@
    meet when one of them lost the object (reconcile.py);
 4. refine: every frame, anchors included, re-registered to the model of all frames (refine.py), first once
    against a twice coarser model, where the copies of a detail that stretches between manual frames left
-   side by side merge (refine.coarse_round); a later round that bends the sequence (the manual frames' refined
-   poses no longer fit their placed boxes as one object frame: refine.anchor_bend) is undone;
+   side by side merge (refine.coarse_round);
    where the two chains disagreed, the frame is re-registered from each chain's pose: when no
    start finds a rival pose fitting as well and the pose is smooth with its neighbours, the
    disagreement is re-measured against the final pose (refine.recheck_disagreements); the
@@ -465,7 +464,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         for voxel in [v for v in (config.voxel_size, config.coarse_voxel()) if v is not None]:
             tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
-    results = refine_all(tracker, results, fine_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained, placed=placed)
+    results = refine_all(tracker, results, fine_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
     # a frame the refinement left turned over (a bottle upside down) is brought back before the smoothing averages it in
     results = repair_flips(tracker, results, anchors)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?

@@ -61,20 +61,12 @@ def refine_all(
     step: Callable[[], None] | None = None,
     settled: tuple[float, float] | None = None,
     origin: dict[str, np.ndarray] | None = None,
-    placed: dict[str, np.ndarray] | None = None,
 ) -> dict[str, FrameResult]:
     """Re-register every frame of ``results`` (in order) to the model of all of them, ``rounds`` times.
 
     ``origin``: frame -> the chains' pose (4x4) that :func:`far_from_chains` measures the rounds from (default:
     the poses of ``results``; the engine passes the poses from before :func:`coarse_round`, so that the coarse
     round's moves and these rounds' do not add up past the limit).
-
-    With ``placed`` (manual frame -> its placed box, 4x4; at least 3), a round that leaves the manual frames more
-    than ``config.max_anchor_bend_deg`` further from fitting their placed boxes as one object frame than before the
-    rounds (:func:`anchor_bend`) bent the sequence: it is undone and the rounds end. The joint refinement changes
-    that fit by about a degree either way; a round that turns whole stretches a few degrees against the rest changes
-    it by more. Boxes placed further off leave more of their own error in it, and a limit of 2 deg also undid a
-    round that helped: hence the default of 2.5 deg.
 
     With ``settled`` (deg, m), the rounds stop early once a round moved the frames' poses by less
     than both in the median (the model of the next round would be the same model): a laptop's
@@ -91,19 +83,13 @@ def refine_all(
     does one that a round would turn by more than ``config.max_refine_step_deg`` or move by more
     than ``config.max_refine_step_m`` without fitting the same points clearly better
     (``config.refine_step_fitness_gain``; noted as ``refine_rejected_deg`` / ``_m``); for symmetric
-    objects, the same holds for the rounds together against the chains' pose (:func:`far_from_chains`),
-    and a better fit does not count when the moved pose puts more of the model where the frame sees
-    through it (``config.max_refine_through_gain``: a hand cupping a bowl from below fits a slid bowl
-    better, while the frame sees through much more of the slid model than at the chains' pose).
+    objects, the same holds for the rounds together against the chains' pose (:func:`far_from_chains`).
     The limits are there because the model of all frames lets frames slide far along what it does not pin
     down, at a high fitness (a mug's bottom, a disc, fits any spin, even from the true pose), while the
     chains' real corrections (a laptop's, of 10-20 deg) fit clearly better.
     """
     config = tracker.config
     origin = {f: r.pose for f, r in results.items()} if origin is None else {f: origin.get(f, r.pose) for f, r in results.items()}
-    bend_limit = config.max_anchor_bend_deg if placed and len(placed) >= 3 and config.max_anchor_bend_deg > 0 else None
-    if bend_limit is not None:
-        bend_start = anchor_bend(results, placed, tracker.symmetric)
     for done in range(rounds):
         poses = {k: r.pose for k, r in results.items() if not suspect(r, config)}
         if len(poses) < max(3, len(results) // 4):
@@ -116,12 +102,8 @@ def refine_all(
         settle = _Settler(tracker, results, own, origin, model, hits, retry=done == 0)
         updated = settle.all(config.worker_count())
         moved = np.array([pose_difference(results[f].pose, r.pose, tracker.symmetric) for f, r in updated.items() if r.ok])
-        # a round that bent the sequence (the manual frames' refined poses no longer fit their placed boxes as one
-        # rigid object frame: anchor_bend) is undone, and the rounds end
-        bent = bend_limit is not None and anchor_bend(updated, placed, tracker.symmetric) > bend_start + bend_limit
-        if not bent:
-            results = updated
-        if bent or (settled is not None and len(moved) and np.median(moved[:, 0]) < settled[0] and np.median(moved[:, 1]) < settled[1]):
+        results = updated
+        if settled is not None and len(moved) and np.median(moved[:, 0]) < settled[0] and np.median(moved[:, 1]) < settled[1]:
             if step is not None:
                 for _ in range((rounds - done - 1) * len(results)):
                     step()  # the progress still ends at its total
@@ -221,11 +203,6 @@ class _Settler:
             deg, metres = pose_difference(previous.pose, result.pose, tracker.symmetric)
             if large_step(deg, metres, config) or (tracker.symmetric and far_from_chains(*pose_difference(self.origin[frame_id], result.pose, True), config)):
                 before, after = _fitness_pair(tracker, frame_id, previous.pose, result.pose, model.target(hits))
-                if after >= before + config.refine_step_fitness_gain and tracker.symmetric and config.max_refine_through_gain > 0:
-                    # a better fit that puts the model where the camera sees through it fits a hand, not the object
-                    through = _through_pair(tracker, frame_id, previous.pose, result.pose, model.target(hits))
-                    if through[1] > through[0] + config.max_refine_through_gain:
-                        after = before
                 if after < before + config.refine_step_fitness_gain:
                     # a slide along a direction the model does not pin down (a mug's bottom: a disc fits any
                     # spin, fitness 0.8-1.0 at 50-170 deg off), not a correction of the chains (a laptop's
@@ -243,21 +220,6 @@ class _Settler:
             figures.pop("refine_rejected_m", None)
         kept = result.pose if result.figures.get("fitness", 0.0) >= config.min_fitness else None
         return FrameResult(result.pose, True, figures), kept
-
-
-def anchor_bend(results: dict[str, FrameResult], placed: dict[str, np.ndarray], symmetric: bool) -> float:
-    """How far (deg) the worst manual frame's pose in ``results`` is from its placed box (``placed``: frame -> 4x4),
-    once all poses are moved by the one object-frame correction that best fits the placed boxes
-    (reconcile.common_correction).
-
-    Poses consistent with the truth leave each manual frame its own placement error against the mean of them all
-    (at most the placement error: 3 deg in the issue's setting); a refinement that bends the sequence (one stretch
-    turned against another) adds the bend, which can double it.
-    """
-    ids = [m for m in placed if m in results]
-    tracked = {m: results[m].pose for m in ids}
-    correction = common_correction(tracked, {m: placed[m] for m in ids}, symmetric)
-    return max(pose_difference(placed[m], tracked[m] @ correction, symmetric)[0] for m in ids)
 
 
 def coarse_round(tracker: Tracker, results: dict[str, FrameResult], anchors: list[str] = (), step: Callable[[], None] | None = None) -> dict[str, FrameResult]:
@@ -326,16 +288,6 @@ def far_from_chains(deg: float, metres: float, config) -> bool:
     tilt), and the smoothing carries the rest along.
     """
     return (config.max_refine_departure_deg > 0 and deg > config.max_refine_departure_deg) or (config.max_refine_departure_m > 0 and metres > config.max_refine_departure_m)
-
-
-def _through_pair(tracker: Tracker, frame_id: str, pose_a: np.ndarray, pose_b: np.ndarray, target) -> tuple[float, float]:
-    """Share of the model's points (``target``, object frame) that the frame sees through (depth clearly behind
-    them, freespace.py), at ``pose_a`` and at ``pose_b`` (4x4 each)."""
-    out = []
-    for pose in (pose_a, pose_b):
-        through, _ = free_space_votes(target.points, {frame_id: pose}, tracker.store, tracker.config.free_space_tolerance)
-        out.append(float(np.mean(through)) if len(through) else 0.0)
-    return out[0], out[1]
 
 
 def _fitness_pair(tracker: Tracker, frame_id: str, pose_a: np.ndarray, pose_b: np.ndarray, target) -> tuple[float, float]:
