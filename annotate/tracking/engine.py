@@ -386,6 +386,11 @@ def track_sequence(
         return _track(sequence, annotation, frames, config, progress)
 
 
+def _suspects(results: dict[str, FrameResult], ids: list[str], config: TrackingConfig) -> frozenset[str]:
+    """The frames of ``ids`` whose registration failed or whose chains disagree (refine.suspect)."""
+    return frozenset(f for f in ids if suspect(results[f], config))
+
+
 def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None, config: TrackingConfig, progress: Progress | None) -> Annotation:
     ids = _ordered_range(sequence, frames)
     anchors = _anchors(annotation, ids)
@@ -539,8 +544,9 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             if shift is not None:
                 poses = {f: p @ shift for f, p in poses.items()}
         if flat is not None and config.frame_tilt:
-            # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py)
-            poses = each_frame_untilted(tracker, ids, poses)
+            # ... and each frame's own tilt, which its registration leaves to the curved wall (tilt.py); not measured
+            # on the suspect frames (see the round body's below)
+            poses = each_frame_untilted(tracker, ids, poses, skip=_suspects(results, ids, config))
     elif not symmetric and (config.face_snap or config.hinge_snap or (nearly_round and config.body_axis_snap)):
         model = build_model(tracker, poses, config.max_global_frames, anchors)
         # a round body's axis and foot say its tilt only where its wall is a surface of revolution (a mug's: its handle
@@ -568,7 +574,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # frames alike, and is refused where the body's fit is ill-conditioned
             # (not measured on the suspect frames: a frame centimetres off measures a tilt that is not the object's,
             # and the window's median would carry it to its trusted neighbours)
-            poses = each_frame_untilted(tracker, ids, poses, skip=frozenset(f for f in ids if suspect(results[f], config)))
+            poses = each_frame_untilted(tracker, ids, poses, skip=_suspects(results, ids, config))
         if hinged and config.frame_hinge_tilt:
             # ... and each frame's own rotation from its base's and lid's faces: the snap turns all frames alike, but
             # the frames that see the base from above and those that see it from below share no face, and their
