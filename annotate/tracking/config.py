@@ -44,7 +44,7 @@ class TrackingConfig:
     free_space_tolerance: float = 0.01  #: global models drop voxels seen through by more than this (0: off)
     max_through_share: float = 0.5  #: ... in more than this share of the frames that see them (a moved hand)
     max_global_frames: int = 60  #: frames used to build the global model (evenly spaced)
-    spin_window: int = 2  #: near-round objects without symmetry whose spin is free somewhere (a mug): a suspect or free-spin frame takes the mean spin about the body's axis of the frames within this many either side (spin_window.py; 0: off)
+    spin_window: int = 2  #: objects without symmetry whose spin is free somewhere (a mug): a suspect or free-spin frame takes the mean spin about the body's axis of the frames within this many either side (spin_window.py; 0: off)
     smoothing: bool = True  #: smooth the refined poses where registration leaves a direction weak (smooth.py)
     information_sigma: float = 0.002  #: point noise (m) scaling a frame's registration information
     smoothing_undo_deg: float = 3.0  #: a frame the smoothing turned further keeps its refined pose where that fits clearly better (refine.undo_smoothing_bends; 0: off)

@@ -506,8 +506,8 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             results[frame_id] = FrameResult(shifted(r.pose, shift), r.ok, {**r.figures, "slide_m": metres})
     # a spin the geometry leaves free (a mug's handle hidden) is carried by both chains alike, on the motion alone
     free, spin_axis = free_spin_frames(tracker, results, trusted) if check_spin and trusted is not None else (set(), None)
-    if nearly_round and free and spin_axis is not None and config.spin_window > 0:
-        # where the shape leaves the spin free somewhere (a mug, not a camera), each suspect or free-spin frame took
+    if free and spin_axis is not None and config.spin_window > 0:
+        # where the shape leaves the spin free somewhere (a mug whose handle hides), each suspect or free-spin frame took
         # its spin from its own registration, one frame at a time: consecutive frames jitter about the axis, which
         # the hand turns smoothly (spin_window.py)
         chosen = [f not in placed and (f in free or suspect(results[f], config)) for f in ids]
