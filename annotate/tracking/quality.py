@@ -7,8 +7,10 @@ Figures (stored as extra keys on each tracked frame of the document):
 - ``chain_disagreement_deg`` / ``chain_disagreement_m``: how far apart the forward and the
   backward chain put the frame between two manual frames; outside their span, how far a second
   chain on the model of all frames lands from the final pose (refine.recheck_single_chains);
-- ``chain_departure_deg`` / ``chain_departure_m``: between two manual frames, how far the final
-  pose is from the nearer of the two chains' poses (consistency.chain_departures);
+- ``chain_departure_deg`` / ``chain_departure_m``: how far the final pose is from the nearest pose a chain gave
+  the frame: of its two chains between two manual frames, else of the one chain that reached it (outside the
+  manual frames' span, or where one chain failed; consistency.chain_departures); only the degrees are flagged
+  (``max_chain_departure_deg``);
 - ``free_spin_run`` / ``free_spin_end``: objects without symmetry, frames whose geometry leaves the spin
   about the axis free (a mug with its handle hidden; free_spin.py): how many such
   frames in a row hold it, and whether no frame beyond that run fixes the spin (before the first or after
