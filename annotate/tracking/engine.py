@@ -34,7 +34,7 @@
    undetermined (a shallow bowl: nearly a sphere), where the box's y is turned onto the model's normals within 5 deg
    of it instead (its foot and inner bottom face along the axis; faces.tilt_onto_axis), its centre moved across y
    onto the axis the model's normal lines meet along that y (symmetry_axis.fit_axis_point), and then each frame onto
-   the normals of its own points near y, the median over +-6 frames (tilt.py);
+   the normals of its own points near y, the median over +-6 frames, the suspect frames measuring none (tilt.py);
    a near-round body without symmetry whose wall is a surface of revolution (a mug: _revolves) has its box's y
    turned onto the body's axis the same way, about
    the box centre (which the handle keeps off the axis), and each frame then turned onto its own normals near y as a
@@ -49,8 +49,9 @@
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, the frames whose geometry leaves the spin about the axis free found (free_spin.py: a mug with
    its handle hidden, carried by both chains alike on the motion; done before the common frame, after the joint
-   refinement and the smoothing); a near-round body whose spin is free somewhere has its suspect and free-spin
-   frames take the mean spin about its axis of the frames within +-2 (spin_window.py: they were registered one at a time, and jitter about the axis);
+   refinement and the smoothing); where the spin is free somewhere, the suspect and free-spin frames take the mean
+   spin about the axis of the frames within +-2 (spin_window.py: they were registered one at a time, and jitter
+   about the axis);
    frames in a long run of such free-spin frames, or beyond the last frame that fixes the spin, are
    flagged: only the motion carries their spin (consistency.free_spin_runs).
 
