@@ -80,7 +80,7 @@ def test_a_chain_lost_between_the_first_two_inner_frames_is_seen():
 def test_an_end_frame_off_in_one_chain_alone_is_flagged_or_right():
     # the forward chain 15 deg off at the first inner frame only (back on the object from the second): with the end
     # frames repeated in the gaps' running median this shows as a loss, the seam lands after it, and frame 1 takes
-    # the forward chain's pose; its doubt must say so (measured before: 15 deg off, disagreement 0, no flag)
+    # the forward chain's pose; its doubt must say so (its disagreement alone is 0)
     truth = _truth(20)
     ids = [f"{k:07d}" for k in range(len(truth))]
     off = _block(Rotation.from_euler("x", 15, degrees=True))
@@ -107,8 +107,7 @@ def test_manual_frames_side_by_side_or_a_chain_failed_throughout_do_not_crash():
 def test_frames_both_chains_jumped_on_their_way_to_are_flagged_and_keep_their_pose():
     # both chains turn 10 deg the same way: the forward one from frame 5 on, the backward one (going back) from
     # frame 20 down. Their gap stays small where both are off (frames 5-19), so no loss shows in it; yet each
-    # chain jumped between its anchor and those frames (measured: the bundled sample mug, frames 16-25 10-13 deg
-    # off, chains 4-5 deg apart, no flag)
+    # chain jumped between its anchor and those frames, which a gap alone would leave unflagged
     truth = _truth(26)
     ids = [f"{k:07d}" for k in range(len(truth))]
     off = _block(Rotation.from_euler("y", 10, degrees=True))

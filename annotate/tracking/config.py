@@ -17,7 +17,7 @@ class TrackingConfig:
     backend: str = "point_to_plane"  #: one of registration.BACKENDS (chosen by benchmarks/bench_tracking.py)
     voxel_size: float = 0.004  #: model and frame downsampling (at least; large objects use max extent / voxels_across)
     voxels_across: int = 60  #: a large object gets a coarser voxel so its point count (and time) stays bounded
-    shallow_voxel_size: float = 0.003  #: a shallow body of symmetry y (a bowl: height under SHALLOW_RATIO of its width) starts from this voxel instead (docs/tracking_chains.md; 0: voxel_size)
+    shallow_voxel_size: float = 0.003  #: a shallow body of symmetry y (a bowl: height under SHALLOW_RATIO of its width) starts from this voxel instead (its thin rim and foot fix its axis; 0: voxel_size)
     max_points: int = 2500  #: a frame's points registered at most (every k-th beyond; 0: all)
     stride: int = 2  #: pixel subsampling when reading a frame's points
     crop_margin: float = 0.01  #: box grown by this on each side when cropping a frame
@@ -28,7 +28,7 @@ class TrackingConfig:
     chain_follow_step_m: float = 0.01  #: ... and moved it at most this far (m)
     model_refresh: int = 3  #: a chain's model target (normals, search grid) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
-    large_body_rounds: int = 1  #: ... for a large body (a laptop: engine.LARGE_BODY_AREA_M2), whose second round moved its frames 0.04-0.09 deg in the median and helped none (docs/tracking_chains.md)
+    large_body_rounds: int = 1  #: ... for a large body (a laptop: engine.LARGE_BODY_AREA_M2): after a second round its hinge snap reads another rotation off the model (docs/tracking_chains.md)
     coarse_voxel_factor: float = 2.0  #: ... after one round against a model this many times coarser (refine.coarse_round; <= 1: none)
     coarse_step_deg: float = 5.0  #: ... in which a frame turns at most this far (deg)
     coarse_step_m: float = 0.01  #: ... and moves at most this far (m)
@@ -139,7 +139,7 @@ def scaled_to(config: TrackingConfig, extents, symmetric: bool = False) -> Track
     y (``symmetric``) starts from ``shallow_voxel_size``, and a large object's grows to max extent / ``voxels_across``.
 
     A bowl's thin rim and foot are what fix its axis: on coarser voxels its frames lose it where the hand covers the
-    bowl (docs/tracking_chains.md)."""
+    bowl."""
     from dataclasses import replace
 
     extents = np.asarray(extents, dtype=np.float64).reshape(3)

@@ -22,7 +22,7 @@ class CellGrid:
     """The points (M, 3) sorted into cubic cells of side ``cell`` (m): a k-nearest search with a distance bound.
 
     Built in numpy in one pass (a sort of the cell numbers); a KD-tree of the same points costs more to build and
-    about three times as much per query (measured on a laptop model's 10,000 points, 5 neighbours per query).
+    about three times as much per query at a model's size (10,000 points, 5 neighbours per query).
     """
 
     def __init__(self, points: np.ndarray, cell: float) -> None:

@@ -8,8 +8,7 @@ symmetric window keeps a constant turn where it is. Only the chosen frames are a
 the good ones.
 
 Only the spin about the body's axis is averaged, about that axis (the box centre is off it, by the handle): the
-tilt of the axis is fixed by the body's shape in every frame. Measured on the benchmark suite's dev split: without
-the window the patterned mug's p90 goes 4.8 -> 6.2 deg, and no other sequence moves by more than 0.2 deg.
+tilt of the axis is fixed by the body's shape in every frame.
 """
 
 from __future__ import annotations
