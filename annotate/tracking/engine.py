@@ -497,7 +497,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     slides = slide_corrections(tracker, results, trusted.target(min_hits_for(trusted, config)), set(anchors), sliding) if trusted is not None else {}
     steps.finish_phase()
     # ... unless the slide takes the frame off the path of its neighbours: it is then flagged for review instead
-    lone = against_the_motion(results, slides, config.slide_path_tolerance, {f for f, r in results.items() if suspect(r, config)})
+    lone = against_the_motion(results, slides, config.slide_path_tolerance, _suspects(results, ids, config))
     results = dict(results)
     for frame_id, shift in slides.items():
         r, metres = results[frame_id], float(np.linalg.norm(shift))
