@@ -133,25 +133,6 @@ def test_joint_refinement_stops_after_a_round_that_left_the_poses_settled(scene)
     assert progress[-1][0] == progress[-1][1]
 
 
-def test_a_large_body_gets_its_own_count_of_fine_rounds(scene, monkeypatch):
-    import annotate.tracking.engine as engine
-
-    root, _, annotation = scene
-    rounds, progress = [], []
-    real = engine.refine_all
-    monkeypatch.setattr(engine, "refine_all", lambda tracker, results, count, *a, **k: rounds.append(count) or real(tracker, results, count, *a, **k))
-    area = float(np.prod(np.sort(annotation.extents * 1.08)[1:]))  # the tracker's box: the extents and their slack
-    config = TrackingConfig(global_rounds=2, large_body_rounds=1)
-    track_sequence(open_sequence(root), annotation, config=config)
-    assert area < engine.LARGE_BODY_AREA_M2 and rounds == [2]  # the mug's usual fine rounds (after the coarse round)
-    monkeypatch.setattr(engine, "LARGE_BODY_AREA_M2", area * 0.99)  # the mug's box now counts as large (a laptop's)
-    rounds.clear()
-    track_sequence(open_sequence(root), annotation, config=config, progress=lambda d, t: progress.append((d, t)))
-    assert rounds == [1]
-    # the progress counts the rounds that run: 2 + 2 + 2 * (10 + 9) chained frames, the coarse and the one fine round, the checks (2)
-    assert progress[-1] == (2 + 2 + 2 * 19 + 2 * 24 + 2 * 24,) * 2
-
-
 def test_progress_counts_up_by_one_to_its_total_through_the_checks(scene):
     root, _, annotation = scene
     for config in (TrackingConfig(), TrackingConfig(slide_check=False)):

@@ -146,7 +146,22 @@ def test_a_turned_laptop_is_turned_back_by_its_base_and_lid(seed):
     # measured 0.03-0.05 deg left of 1.8; the spin about y comes from the lid alone (the base's top faces along it)
     assert _angle_deg(rotation @ truth) < 0.15
     config = TrackingConfig()
-    assert shares[0] >= config.min_hinge_cone_share and shares[1] >= config.min_hinge_plane_share, shares
+    assert shares[1] >= config.min_hinge_plane_share, shares
+
+
+def test_a_laptop_seen_mostly_on_its_lid_is_turned_back_too():
+    """Frames that face the screen see little of the base: a model can hold only a few per cent of its normals along
+    the base's faces (4-10 % on the dev laptop). The cone's normals need only be enough to fit (30), not a share."""
+    rng = np.random.default_rng(13)
+    normals = _jitter(_laptop_normals(3), 3.0, rng)
+    along_base = np.abs(normals[:, 1]) > 0.95
+    keep = ~along_base | (rng.uniform(size=len(normals)) < 0.02 * len(normals) / max(along_base.sum(), 1))
+    normals = normals[keep & (normals[:, 1] > -0.9)]  # about 2 % of what is left faces along the base, none below
+    truth = Rotation.from_rotvec(np.radians([1.0, -0.8, 1.5])).as_matrix()
+    rotation, shares = hinge_rotation(normals @ truth.T)
+    assert rotation is not None and shares[0] < 0.05, shares
+    assert shares[1] >= TrackingConfig().min_hinge_plane_share, shares
+    assert _angle_deg(rotation @ truth) < 0.5  # of 2.0 deg (0.34 left: the base's few normals fix the tilt less well)
 
 
 def test_a_lid_alone_fixes_the_spin_and_the_base_alone_does_not():
@@ -161,14 +176,14 @@ def test_a_lid_alone_fixes_the_spin_and_the_base_alone_does_not():
     assert rotation is not None and abs(Rotation.from_matrix(rotation).as_rotvec()[1]) < 1e-4
 
 
-def test_shapes_that_are_not_hinged_fall_short_of_the_shares():
+def test_shapes_that_are_not_hinged_fall_short_of_the_plane_share():
     rng = np.random.default_rng(21)
     config = TrackingConfig()
     around = rng.uniform(0, 2 * np.pi, 4000)
     side = np.stack([np.cos(around), np.zeros_like(around), np.sin(around)], 1)  # a mug's body, with its caps
     caps = np.repeat([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]], 600, axis=0)
     rotation, shares = hinge_rotation(_jitter(np.vstack([side, caps]), 2.0, rng))
-    assert rotation is None or shares[0] < config.min_hinge_cone_share or shares[1] < config.min_hinge_plane_share, shares
+    assert rotation is None or shares[1] < config.min_hinge_plane_share, shares
     assert hinge_rotation(np.repeat([[0.6, 0.8, 0.0]], 100, axis=0))[0] is None  # nothing in the cone
 
 
@@ -200,5 +215,5 @@ def test_real_scans_that_are_not_hinged_are_refused(nocs_dir, scan):
     _, faces = trimesh.sample.sample_surface(mesh, 20000, seed=0)
     rotation, shares = hinge_rotation(mesh.face_normals[faces])
     config = TrackingConfig()
-    # measured: camera 1.1 % in the cone, 14 % in the plane; mug 3.3 % and 6.9 % (gates: 5 % and 35 %)
-    assert rotation is None or shares[0] < config.min_hinge_cone_share or shares[1] < config.min_hinge_plane_share, shares
+    # the camera holds 14 % of its normals in the plane, the mug 6.9 % (the gate: 35 %)
+    assert rotation is None or shares[1] < config.min_hinge_plane_share, shares

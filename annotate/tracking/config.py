@@ -28,7 +28,6 @@ class TrackingConfig:
     chain_follow_step_m: float = 0.01  #: ... and moved it at most this far (m)
     model_refresh: int = 3  #: a chain's model target (normals, search grid) is rebuilt every this many frames
     global_rounds: int = 2  #: rounds of registering every frame to the model of all frames
-    large_body_rounds: int = 1  #: ... for a large body (a laptop: engine.LARGE_BODY_AREA_M2): after a second round its hinge snap reads another rotation off the model (docs/tracking_chains.md)
     coarse_voxel_factor: float = 2.0  #: ... after one round against a model this many times coarser (refine.coarse_round; <= 1: none)
     coarse_step_deg: float = 5.0  #: ... in which a frame turns at most this far (deg)
     coarse_step_m: float = 0.01  #: ... and moves at most this far (m)
@@ -64,13 +63,9 @@ class TrackingConfig:
     hinge_snap: bool = True  #: a hinged body (a laptop): turn the box's y onto its base's normals and its x square to its lid's (faces.hinge_rotation), at most max_face_snap_deg
     hinge_cone_deg: float = 5.0  #: ... the normals within this of +-y (the base's top and bottom) fix the tilt
     hinge_plane_deg: float = 3.0  #: ... the normals within this of the y-z plane (the lid, the base's edges) fix the spin
-    min_hinge_cone_share: float = 0.05  #: ... when at least this share of the model's normals lies within hinge_cone_deg of +-y
-    min_hinge_plane_share: float = 0.35  #: ... and at least this share within hinge_plane_deg of the y-z plane
-    hinge_centring: bool = True  #: ... and each frame moved along the hinge to the middle of the object's ends seen about it (centring.py)
+    min_hinge_plane_share: float = 0.35  #: ... when at least this share of the model's normals lies within hinge_plane_deg of the y-z plane (a mug's caps and side hold about a quarter)
     frame_hinge_tilt: bool = True  #: ... and then every frame turned onto its own base's and lid's normals, the median over tilt_window (tilt.py)
     hinge_tilt_every: int = 2  #: ... measured on every this-many-th frame (a laptop frame's normals cost ~30 ms of CPU; the median keeps 6-7)
-    centring_tolerance: float = 0.005  #: ... by the frames whose span along it reaches within this (m) of the widest spans
-    centring_window: int = 1  #: ... within this many frames either side (their median middle)
     flat_snap: bool = True  #: symmetry y where the axis fit is refused (a shallow bowl): turn the box's y onto the model's normals near it (faces.tilt_onto_axis), at most max_face_snap_deg
     flat_cone_deg: float = 5.0  #: ... those within this of +-y
     min_flat_share: float = 0.03  #: ... when they are at least this share of the model's normals

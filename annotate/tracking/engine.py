@@ -41,8 +41,7 @@
    bowl's (tilt.py; by at most
    half the cone of normals it reads: a curved patch seen from one side walks the cone's mean to its edge);
    a box-like body (a camera) onto its faces (faces.py); a hinged one (a laptop) its y onto its base's faces and
-   its x square to its lid's (faces.hinge_rotation), each frame then moved along the hinge to the middle of the
-   ends that the frames about it see (centring.py), and turned onto its own base's and lid's faces, the median
+   its x square to its lid's (faces.hinge_rotation), each frame then turned onto its own base's and lid's faces, the median
    over +-6 frames (tilt.py: the frames that see the base from above and those that see it from below share no
    face, and kept their manual frames' rotations);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
@@ -66,12 +65,11 @@ reached it, and a frame or two left unflagged between flagged frames is flagged 
 
 Open3D runs on ``config.threads`` threads meanwhile (1 by default: reproducible figures), and the independent
 work (the chains, every frame's registration in a refinement round and the first round's restarts of suspect
-frames, the rechecks, the slides, the centring spans, a model's crops, the smoothing's information matrices and
+frames, the rechecks, the slides, a model's crops, the smoothing's information matrices and
 the document's in-box shares) on ``config.workers`` forked processes (workers.py): the same poses for any count
 (ranges under ``MIN_FRAMES_FOR_WORKERS`` frames, and the refinement of one frame, run on one process). After the
 chains, a large object's frames (a laptop's) are each cropped once, a little wider, and their later crops cut from
-that (FrameStore.hold; ``LARGE_BODY_AREA_M2``). Such a body gets ``config.large_body_rounds`` fine rounds (one), not
-``global_rounds``.
+that (FrameStore.hold; ``LARGE_BODY_AREA_M2``).
 """
 
 from __future__ import annotations
@@ -94,7 +92,6 @@ from .propagate import run_chain
 from .quality import document_figures, in_box_share, pose_difference, rotation_angle_deg
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
-from .centring import centre_offsets, centred, extent_along
 from .free_spin import FreeSpinCheck
 from .faces import box_like, face_rotation, hinge_rotation, tilt_onto_axis
 from .model import ObjectModel
@@ -123,8 +120,7 @@ MIN_FRAMES_FOR_WORKERS = 40
 #: A large body: the box's two largest sides span at least this (m^2; a laptop, 0.35 x 0.34 m). After the chains, its
 #: frames' crops are cut from one wider crop per frame (FrameStore.hold): a crop's cost grows with the pixels the box
 #: covers (a laptop's ~1.9 ms for 13,000 pixels; a mug's ~0.5 ms); smaller objects gain nothing from it, and a mug's
-#: spin moves with its crops. And it gets ``config.large_body_rounds`` fine rounds: a laptop's second round hardly
-#: turns its frames, and what its first moves along the hinge the slide check and the centring take up.
+#: spin moves with its crops.
 LARGE_BODY_AREA_M2 = 0.05
 
 
@@ -327,21 +323,9 @@ def _snap_hinge(tracker: Tracker, model: ObjectModel) -> np.ndarray | None:
     config = tracker.config
     normals = np.asarray(model.target(min_hits_for(model, config)).cloud.normals)
     rotation, shares = hinge_rotation(normals, config.hinge_cone_deg, config.hinge_plane_deg)
-    if rotation is None or shares[0] < config.min_hinge_cone_share or shares[1] < config.min_hinge_plane_share:
+    if rotation is None or shares[1] < config.min_hinge_plane_share:
         return None
     return _rotation_snap(rotation, config)
-
-
-def _centred_on_hinge(tracker: Tracker, ids: list[str], poses: dict[str, np.ndarray], snap: np.ndarray, model: ObjectModel) -> dict[str, np.ndarray]:
-    """``poses`` (object frame of ``model``, before the hinge ``snap``) each moved along the snapped x (the hinge) to
-    the middle of the object's ends seen by the frames about it (centring.py)."""
-    config = tracker.config
-    target = model.target(min_hits_for(model, config))
-    hinge = snap[:3, 0]  # the snapped object's x, in the frame of the model (the snap turns about the box centre)
-    # 3-4 ms per laptop frame (its KD queries): on the workers, as the other per-frame steps
-    spans = ordered_map(lambda f: extent_along(tracker, f, poses[f], target, hinge), ids, config.worker_count())
-    offsets = centre_offsets(spans, config.centring_tolerance, config.centring_window)
-    return {f: centred(poses[f], offset, hinge) for f, offset in zip(ids, offsets)}
 
 
 def _nearly_round(tracker: Tracker, placed: dict[str, np.ndarray]) -> bool:
@@ -418,8 +402,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     a_idx = [position[m] for m in anchors]
     chain_frames = (a_idx[0]) + (len(ids) - 1 - a_idx[-1]) + sum(2 * (b - a) for a, b in zip(a_idx, a_idx[1:]))
     large = float(np.prod(np.sort(tracker.box)[1:])) >= LARGE_BODY_AREA_M2
-    fine_rounds = config.large_body_rounds if large else config.global_rounds
-    rounds = fine_rounds + (1 if config.coarse_voxel() is not None else 0)
+    rounds = config.global_rounds + (1 if config.coarse_voxel() is not None else 0)
     # the checks after the joint refinement (the recheck of the frames whose chains disagreed, the slides) count a
     # frame's worth each: a laptop spent a third of its run in them with the bar already full
     steps = _Steps(chain_frames + rounds * len(ids) + 2 * len(ids), progress)
@@ -470,7 +453,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         for voxel in [v for v in (config.voxel_size, config.coarse_voxel()) if v is not None]:
             tracker.store.hold([(f, chained[f]) for f in ids], tracker.box, voxel, workers)
     results = coarse_round(tracker, results, anchors, steps)
-    results = refine_all(tracker, results, fine_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
+    results = refine_all(tracker, results, config.global_rounds, anchors, steps, (config.settled_deg, config.settled_m), origin=chained)
     # a frame the refinement left turned over (a bottle upside down) is brought back before the smoothing averages it in
     results = repair_flips(tracker, results, anchors)
     # flags follow the final pose: where the chains disagreed, does the whole model pin the frame down?
@@ -565,9 +548,6 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
             # the placed boxes' mean tilt is off by their errors' mean; the body's axis, fitted to the model, is not
             # (refused where the fit is ill-conditioned)
             snap = _snap_body_axis(tracker, model)
-        if hinged and config.hinge_centring:
-            # ... and its centre along the hinge from the ends each frame sees, which the ICP leaves free (centring.py)
-            poses = _centred_on_hinge(tracker, ids, poses, snap, model)
         if snap is not None:
             poses = {f: p @ snap for f, p in poses.items()}
         if round_body and not hinged and not faced and config.frame_tilt:

@@ -25,7 +25,7 @@ checked; at most ``MAX_SEARCH_POINTS`` points of the crop, on a coarse and a fin
 A whole stretch a few mm off with its manual frame is not a slide this check sees: a ``min_slide_m`` of 2 or
 3 mm moves no frame, and the hand is not what holds such a stretch off. Where a stretch's model shares no
 surface facing the same way with the rest of the sequence, only the regrasps between them, whose chains are
-lost, join it to the rest. A hinged body's frames are moved along the hinge by centring.py.
+lost, join it to the rest.
 """
 
 from __future__ import annotations
