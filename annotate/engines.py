@@ -53,6 +53,18 @@ def anchor_frames(annotation: "Annotation", ids: list[str]) -> list[str]:
     return [f for f in ids if f in annotation.frames and kept_by_a_person(annotation.frames[f])]
 
 
+def anchor_correction(placed: "np.ndarray", estimate: "np.ndarray", symmetric: bool) -> tuple[float, float]:
+    """How far an anchor's ``estimate`` lies from the person's box ``placed`` (both 4x4, object to camera at the colour
+    instant): degrees between the rotations (between their y axes for symmetry y) and metres between the box centres.
+    Every engine judges by it whether the estimate follows the box (:func:`anchored_pose`)."""
+    import numpy as np
+
+    from evaluate.metrics.pose_errors import rotation_error
+
+    degrees = float(rotation_error(placed[:3, :3], estimate[:3, :3], "y" if symmetric else "none"))
+    return degrees, float(np.linalg.norm(placed[:3, 3] - estimate[:3, 3]))
+
+
 def anchored_pose(old: "FramePose", estimate: "np.ndarray", extra: dict, follows: bool) -> "FramePose":
     """An anchor's pose after a run, its source kept: where ``follows`` (the estimate lies within the placement's
     tolerance of the person's box), the estimate (4x4, object to camera at the colour instant) with the person's box

@@ -26,8 +26,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotate.engines import anchor_frames, anchored_pose
-from evaluate.metrics.pose_errors import rotation_error
+from annotate.engines import anchor_correction, anchor_frames, anchored_pose
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
 from sequences.timing import at_depth_time
@@ -172,8 +171,7 @@ def _closure(setup: _Setup, start: np.ndarray, poses: dict[str, np.ndarray], ord
     last = poses[order[-1]]
     before = poses[order[-2]] if len(order) > 1 else start
     predicted = carried(last, before)
-    degrees = float(rotation_error(predicted[:3, :3], target[:3, :3], "y" if setup.symmetric else "none"))
-    metres = float(np.linalg.norm(predicted[:3, 3] - target[:3, 3]))
+    degrees, metres = anchor_correction(target, predicted, setup.symmetric)
     return degrees / setup.config.anchor_sigma_deg + metres / setup.config.anchor_sigma_m
 
 
@@ -339,8 +337,7 @@ def track_sequence(
             old = annotation.frames[frame_id]
             extra = {key: v for key, v in old.extra.items() if key not in ("flagged", "flag_reason")}
             extra.update({key: v for key, v in figures.items() if key not in ("flagged", "flag_reason")})
-            degrees = float(rotation_error(placed[frame_id][:3, :3], poses[k][:3, :3], "y" if setup.symmetric else "none"))
-            metres = float(np.linalg.norm(placed[frame_id][:3, 3] - poses[k][:3, 3]))
+            degrees, metres = anchor_correction(placed[frame_id], poses[k], setup.symmetric)
             extra["manual_correction_deg"], extra["manual_correction_m"] = round(degrees, 3), round(metres, 5)
             follows = degrees <= limit[0] and metres <= limit[1]
             if not follows:

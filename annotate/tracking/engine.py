@@ -79,7 +79,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from annotate.engines import anchor_frames, anchored_pose, kept_by_a_person
+from annotate.engines import anchor_correction, anchor_frames, anchored_pose, kept_by_a_person
 from annotate.estimator.model import is_revolution
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
@@ -89,7 +89,7 @@ from .config import TrackingConfig, scaled_to
 from .consistency import chain_departures, flagged_gaps, flags_grown, free_spin_runs, rotation_jumps
 from .frames import FrameStore
 from .propagate import run_chain
-from .quality import document_figures, in_box_share, pose_difference, rotation_angle_deg
+from .quality import CHAIN_WORDS, document_figures, in_box_share, rotation_angle_deg
 from .registration import open3d_threads
 from .reconcile import blend_chains, chain_frame_offsets, common_correction
 from .free_spin import FreeSpinCheck
@@ -105,13 +105,6 @@ from annotate.workers import ordered_map
 
 Progress = Callable[[int, int], None]
 
-
-#: How a figure that flags a frame beside a flagged one reads (consistency.flags_grown).
-_GROWN_WORDS = {
-    "chain_disagreement_deg": lambda v: f"its two tracking chains disagree by {v:.1f} deg",
-    "chain_disagreement_m": lambda v: f"its two tracking chains disagree by {1000 * v:.0f} mm",
-    "chain_departure_deg": lambda v: f"its pose is {v:.1f} deg from both tracking chains",
-}
 
 #: Shorter ranges track on one process: forking and gathering cost about 30 ms per parallel step, which a short
 #: range does not win back.
@@ -566,7 +559,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
     at_colour = at_colour_time(sequence, {f: poses[f] for f in ids})
     # an anchor whose box lies within the placement's tolerance of its estimate takes the estimate: the object frame
     # is one, fitted to all the placed boxes (and snapped onto the shape), and each box is off by its own error
-    corrections = {f: pose_difference(placed[f], at_colour[f], symmetric) for f in placed}
+    corrections = {f: anchor_correction(placed[f], at_colour[f], symmetric) for f in placed}
     follows = {f: results[f].ok and deg <= config.max_manual_correction_deg and metres <= config.max_manual_correction_m
                for f, (deg, metres) in corrections.items()}
     kept = [placed[f] if f in placed and not follows[f] else at_colour[f] for f in ids]
@@ -604,7 +597,7 @@ def _track(sequence: Sequence, annotation: Annotation, frames: list[str] | None,
         for frame_id, (beside, key, value, limit) in grown.items():
             extra = out.frames[frame_id].extra
             extra["flagged"] = True
-            extra["flag_reason"] = f"beside flagged frame {beside}, {_GROWN_WORDS[key](value)}, {value / limit:.0%} of the limit"
+            extra["flag_reason"] = f"beside flagged frame {beside}, {CHAIN_WORDS[key](value)}, {value / limit:.0%} of the limit"
         flagged |= set(grown)
     for frame_id, (before, after) in flagged_gaps(ids, flagged, tracked, config.max_flag_gap).items():
         extra = out.frames[frame_id].extra

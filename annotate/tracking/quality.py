@@ -56,6 +56,15 @@ def flag_reasons(figures: dict, config) -> list[str]:
     return pose_reasons(figures, config) + spin_reasons(figures, config)
 
 
+#: The chains' figures in words: a frame's own flag reasons and those of the frames flagged beside it (engine.py) say
+#: them alike.
+CHAIN_WORDS = {
+    "chain_disagreement_deg": lambda v: f"two tracking chains disagree by {v:.1f} deg",
+    "chain_disagreement_m": lambda v: f"two tracking chains disagree by {1000 * v:.0f} mm",
+    "chain_departure_deg": lambda v: f"the final pose is {v:.1f} deg from both tracking chains",
+}
+
+
 def pose_reasons(figures: dict, config) -> list[str]:
     """The reasons of :func:`flag_reasons` that doubt more than the spin a frame's shape leaves free."""
     reasons = []
@@ -81,14 +90,14 @@ def pose_reasons(figures: dict, config) -> list[str]:
     if "in_box" in figures and figures["in_box"] < config.min_in_box:
         reasons.append(f"only {figures['in_box']:.0%} of the points near the box are inside it")
     if figures.get("chain_disagreement_deg", 0.0) > config.max_chain_disagreement_deg:
-        reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_deg']:.1f} deg")
+        reasons.append(CHAIN_WORDS["chain_disagreement_deg"](figures["chain_disagreement_deg"]))
     if figures.get("chain_disagreement_m", 0.0) > config.max_chain_disagreement_m:
-        reasons.append(f"two tracking chains disagree by {figures['chain_disagreement_m'] * 1000:.0f} mm")
+        reasons.append(CHAIN_WORDS["chain_disagreement_m"](figures["chain_disagreement_m"]))
     if figures.get("chains_jumped_deg", 0.0) > config.max_chain_disagreement_deg or figures.get("chains_jumped_m", 0.0) > config.max_chain_disagreement_m:
         reasons.append(f"both tracking chains jumped on their way to this frame (by at least {figures.get('chains_jumped_deg', 0.0):.1f} deg / "
                        f"{figures.get('chains_jumped_m', 0.0) * 1000:.0f} mm)")
     if figures.get("chain_departure_deg", 0.0) > config.max_chain_departure_deg:
-        reasons.append(f"the final pose is {figures['chain_departure_deg']:.1f} deg from both tracking chains")
+        reasons.append(CHAIN_WORDS["chain_departure_deg"](figures["chain_departure_deg"]))
     if figures.get("rotation_jump_deg", 0.0) > config.max_frame_rotation_deg:
         reasons.append(f"the box turns {figures['rotation_jump_deg']:.1f} deg from a neighbouring frame")
     if figures.get("manual_correction_deg", 0.0) > config.max_manual_correction_deg:

@@ -77,8 +77,8 @@ def refine_all(
     frames would hold frames whose chains slid far along a laptop's hinge, and leave the rotations further off).
     A suspect frame also starts from the last refined pose that fits (``config.min_fitness``) and its
     constant-velocity prediction, the best-fitting start kept, so a chain that lost the object is repaired against
-    the whole model; in the first round only (later rounds start from the repaired pose: as accurate, with fewer
-    registrations).
+    the whole model; in the first round of a call only (later rounds start from the repaired pose: as accurate, with
+    fewer registrations; the coarse round, a call of its own, restarts them too).
     A frame whose registration fails keeps its pose and figures (with the failure noted), and so
     does one that a round would turn by more than ``config.max_refine_step_deg`` or move by more
     than ``config.max_refine_step_m`` without fitting the same points clearly better
