@@ -8,8 +8,9 @@ The benchmark suite (``benchmarks/run_suite.py``) scores every sequence with the
 - the reconstruction posed in every frame against the true mesh posed in it (the F-score at 5 mm in the
   true object frame, median over frames): pose and shape errors together, as a user of the export sees them;
 - the reconstruction's shape alone (aligned to the true mesh by the mean of its frames' transforms, then
-  ICP): F-score at 5 mm overall, and precision and recall on the *observed* true surface (what some frame
-  measured: visible from its camera and within OBSERVED_TOLERANCE of a measured point of the object);
+  ICP): F-score at 5 mm overall, and on the *observed* surface (what some frame measured: visible from its camera
+  and within OBSERVED_TOLERANCE of a measured point of the object) recall over the true one and precision over the
+  reconstruction's own (its labels, by the same definition: reconstruct.seen);
 - the extents of its tight box against the true extents.
 
 The true surface is the mesh's outer surface: a mesh built by joining parts (a camera's lens barrel set into its
@@ -27,7 +28,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from evaluate.metrics.pose_errors import rotation_error
-from evaluate.metrics.sampling import ShapeIndex, sample_surface
+from evaluate.metrics.sampling import ShapeIndex, sample_surface, sample_surface_faces
 from evaluate.metrics.shape_metrics import fscore_from_hits
 
 #: A true surface sample counts as observed in a frame when its camera sees it (the first hit of the ray to it, on a face
@@ -210,25 +211,32 @@ FACE_NAMES = ("-y (bottom)", "+y (top)", "-x", "+x", "-z", "+z")
 
 
 def shape_scores(mesh, poses: dict[str, np.ndarray], surface: TrueSurface, truth_poses: dict[str, np.ndarray],
-                 threshold: float = FSCORE_THRESHOLD, seed: int = 0) -> dict:
+                 threshold: float = FSCORE_THRESHOLD, seed: int = 0, observed_faces: np.ndarray | None = None) -> dict:
     """The reconstruction's shape against the true surface, aligned (:func:`mean_transform` of its frames' T_true^-1
     T_pose, then :func:`aligned_points`): F-score, precision and recall at ``threshold``, overall and on the observed
-    surface (recall over the observed true samples; precision over the reconstruction's samples whose nearest true
-    sample is an observed one; this pair after an alignment fitted on those samples alone); and per box face (:data:`FACE_NAMES`) how far the aligned reconstruction's extreme
-    lies outside the truth's (mm; negative: inside)."""
+    surface; and per box face (:data:`FACE_NAMES`) how far the aligned reconstruction's extreme lies outside the
+    truth's (mm; negative: inside).
+
+    On the observed surface: recall over the observed true samples, precision over the reconstruction's own observed
+    part, ``observed_faces`` ((F,) bool per face of ``mesh``: the part the reconstruction says some frame measured, by
+    the definition of the truth's, reconstruct.seen), both after an alignment fitted on those two parts alone (what
+    was guessed where no frame looked must not move what was seen). A guess beside the seen part (a hull bulging
+    where no frame looked) is then no precision error of the seen part: it is judged by the shape F-score, the
+    extents and the observed share reported. Without ``observed_faces``, the reconstruction's samples whose nearest
+    true sample is an observed one stand for its observed part."""
     start = mean_transform([np.linalg.inv(truth_poses[f]) @ T for f, T in poses.items() if f in truth_poses])
-    points = sample_surface(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
+    points, faces = sample_surface_faces(mesh, surface_sample_count(float(mesh.area), threshold), seed=seed)
     aligned = aligned_points(points, start, surface.index.points)
     true_hit, hit = surface.index.hits(aligned, threshold)
     overall = fscore_from_hits(true_hit, hit)
     observed = None
-    on_observed = surface.observed[surface.index.tree.query(aligned)[1]]
+    claimed = None if observed_faces is None else np.asarray(observed_faces, dtype=bool)[faces]
+    on_observed = surface.observed[surface.index.tree.query(aligned)[1]] if claimed is None else claimed
     if surface.observed.any() and on_observed.any():
-        # the observed surface is judged aligned on itself: what was guessed where no frame looked must not move it
         T = alignment(points[on_observed], start, surface.index.points[surface.observed])
         moved = points @ T[:3, :3].T + T[:3, 3]
         true_hit, hit = surface.index.hits(moved, threshold)
-        on_observed = surface.observed[surface.index.tree.query(moved)[1]]
+        on_observed = surface.observed[surface.index.tree.query(moved)[1]] if claimed is None else claimed
         observed = fscore_from_hits(true_hit[surface.observed], hit[on_observed]) if on_observed.any() else None
     low, high = aligned.min(axis=0) - surface.index.points.min(axis=0), aligned.max(axis=0) - surface.index.points.max(axis=0)
     faces = {name: float(value * 1000) for name, value in zip(FACE_NAMES, (-low[1], high[1], -low[0], high[0], -low[2], high[2]))}

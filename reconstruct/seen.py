@@ -66,6 +66,11 @@ class SurfaceLabels:
     shares: dict[str, float]  # area share of each label
     faces: dict[str, str]  # box face -> "measured" | "support" | "inferred" | "unseen"
 
+    def observed_faces(self, faces: np.ndarray) -> np.ndarray:
+        """(F,) bool: the mesh's ``faces`` (F, 3 vertex indices) labelled observed (one observed vertex makes the face
+        observed, as the shares count it)."""
+        return self.labels[np.asarray(faces)].min(axis=1) == OBSERVED
+
     def unmeasured_faces(self) -> list[tuple[str, str]]:
         """(face, the turn that would show it) for every box face no measurement bounds."""
         return [(name, advice) for _, _, name, advice in BOX_FACES if self.faces.get(name) not in BOUNDED]

@@ -180,3 +180,27 @@ def test_observed_scores_ignore_what_was_guessed_elsewhere():
     # the front face's 2 cm overhang (about a sixth of its samples, nearest to the observed edge) is wrong, and counted
     assert 0.8 < scores["observed_precision5"] < 0.9
     assert scores["face_errors_mm"]["+x"] > 15.0 and scores["shape_f5"] < 0.5
+
+
+def test_observed_precision_is_over_what_the_reconstruction_says_it_observed():
+    """With the reconstruction's own labels (reconstruct.seen: the faces some frame measured), the observed part's
+    precision is over those faces: a guess beside the seen face that the reconstruction labels unseen is no error of
+    the seen part, and a face it claims to have seen is judged wherever it lies."""
+    cube = _cube()
+    T = _pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.6))  # the camera sees the -z face only
+    dense = trimesh.sample.sample_surface(cube, 60000, seed=1)[0]
+    surface = true_surface(cube, [(T, dense[np.abs(dense[:, 2] + 0.05) < 1e-9] + T[:3, 3])])
+    # the true -z face, and behind it a guess 2 cm deeper and 1 cm wider on every side, all labelled unseen
+    guess = trimesh.creation.box(extents=[0.12, 0.12, 0.12])
+    guess.apply_translation([0.0, 0.0, 0.01])
+    front = trimesh.creation.box(extents=[0.1, 0.1, 0.001])
+    front.apply_translation([0.0, 0.0, -0.0505])
+    joined = trimesh.util.concatenate([front, guess])
+    seen = joined.triangles_center[:, 2] < -0.0505 - 1e-6  # the front slab's -z face
+    scores = shape_scores(joined, {"0": T}, surface, {"0": T}, observed_faces=seen)
+    assert scores["observed_precision5"] > 0.99 and scores["observed_recall5"] > 0.99
+    # the nearest-true-sample stand-in counts the guess's wide rim beside the seen face (1 cm off it) as seen
+    assert shape_scores(joined, {"0": T}, surface, {"0": T})["observed_precision5"] < scores["observed_precision5"] - 0.05
+    # a face it claims to have seen is judged though no true sample near it was observed: the guess's back, 2 cm off
+    back = seen | (joined.triangles_center[:, 2] > 0.069)
+    assert shape_scores(joined, {"0": T}, surface, {"0": T}, observed_faces=back)["observed_precision5"] < 0.6

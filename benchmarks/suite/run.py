@@ -93,7 +93,9 @@ def reconstruction_scores(sequence: Sequence, annotation: Annotation, truth: Tru
         return {"reconstruct_error": str(error)}
     seconds = time.perf_counter() - start
     reported = None if recon.surface is None else recon.surface.shares["observed"]
-    shape = shape_scores(recon.mesh, recon.poses, surface, truth.poses)
+    # the observed part's precision on what the reconstruction says it observed (its labels, held honest by the share gap)
+    claimed = None if recon.surface is None else recon.surface.observed_faces(recon.mesh.faces)
+    shape = shape_scores(recon.mesh, recon.poses, surface, truth.poses, observed_faces=claimed)
     measured = None if recon.surface is None else sorted(f for f, state in recon.surface.faces.items() if state in BOUNDED)
     exported = any(f in truth.poses for f in recon.poses)
     return {

@@ -55,6 +55,11 @@ def sample_surface(mesh, n: int = DEFAULT_SAMPLES, seed: int = 0) -> np.ndarray:
 
     Same frame and units as the mesh vertices.  Raises ValueError for a malformed mesh or zero area.
     """
+    return sample_surface_faces(mesh, n, seed)[0]
+
+
+def sample_surface_faces(mesh, n: int = DEFAULT_SAMPLES, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_surface`'s points (the same for the same ``seed``) and the face each lies on ((n,) indices)."""
     if int(n) != n or n < 1:
         raise ValueError(f"sample_surface: n must be a positive integer, got {n}")
     vertices, faces = mesh_arrays(mesh)
@@ -69,7 +74,7 @@ def sample_surface(mesh, n: int = DEFAULT_SAMPLES, seed: int = 0) -> np.ndarray:
     u, v = rng.random((2, int(n)))
     flip = u + v > 1  # fold the unit square onto the triangle: uniform barycentric coordinates
     u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
-    return a[tri] + u[:, None] * (b[tri] - a[tri]) + v[:, None] * (c[tri] - a[tri])
+    return a[tri] + u[:, None] * (b[tri] - a[tri]) + v[:, None] * (c[tri] - a[tri]), tri
 
 
 class ShapeIndex:
