@@ -206,7 +206,7 @@ class App:
                     self.frame_slider.value = index + 1
                     self.editing.sync(extents, category, symmetry)
                 frame_id = self.sequence.frames[index].id
-                note = "" if own else " (no pose yet: showing the nearest frame's box; any edit places it here)"
+                note = "" if own else " (no pose yet: showing the nearest frame's box; click the object to place it, or any edit places it here)"
                 checked = f", reviewed ({pose.extra['reviewed']})" if own and pose.extra.get("reviewed") else ""
                 self.title.content = f"**{self.sequence.name}**: frame {index + 1}/{len(self.sequence)}, id {frame_id}, **{status}**{checked}{note}"
                 self.tracking.sync(pose, own, review, index)

@@ -15,7 +15,8 @@ WORKFLOW = (
               "fitted to the depth there, and it stays on that surface while you turn it. Shift+drag a rectangle around the object to give its outline (its size). "
               "Then set it right: Shift+J/L, I/K, O/P move it as you see it (left/right, up/down, toward/away), Alt+ the same "
               "keys turn it by Turn by, "
-              "the gizmo moves and turns it, a face's arrow moves that face. The green face is the top (+y, "
+              "the gizmo moves and turns it, a face's arrow moves that face (a frame without its own box shows the "
+              "nearest one's, grey and without handles: click the object to place it there). The green face is the top (+y, "
               "labelled), the blue one the front, a mug's handle side (-z). Do this in 2-3 frames spread over the sequence."),
     ("Refine", "R registers the box to the frame's points and the other posed frames: a box that is close snaps on; "
                "where it cannot, the box stays and the page says why."),

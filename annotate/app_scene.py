@@ -73,6 +73,7 @@ class SceneView:
         self.mesh_vertices = np.zeros((0, 3), np.float32)  # the preview's vertices, object frame
         self.extents = None
         self.show_faces = True
+        self.handles_active = True  # False while the frame shows a borrowed box: a click then places the box
         self._box_key = None
         self.place_face_handles(np.full(3, 0.1))
 
@@ -111,7 +112,17 @@ class SceneView:
         if key == self._box_key:
             return
         self._draw_box(extents, own_pose)
+        self.set_handles(own_pose)
         self._box_key = key
+
+    def set_handles(self, active: bool) -> None:
+        """The gizmo's arrows and rings and the faces' arrows, or none of them. A frame without its own box shows the
+        nearest frame's without handles: drawn over the object (depth_test off), they caught the click meant to place
+        the box on it (the browser's pointer goes to the handle, and the scene's click never comes)."""
+        self.handles_active = bool(active)
+        self.gizmo.disable_axes = self.gizmo.disable_sliders = self.gizmo.disable_rotations = not active
+        for handle in self.face_handles.values():
+            handle.visible = self.show_faces and self.handles_active
 
     def _draw_box(self, extents, own_pose: bool) -> None:
         """Box geometry below the gizmo: axis-coloured edges, the tinted faces (app_views.TINTED_FACES) and their
@@ -147,13 +158,14 @@ class SceneView:
             if handle is None:
                 handle = self.scene.add_transform_controls(
                     f"{BOX}/face_{name}", scale=0.04, active_axes=(True, False, False), disable_rotations=True,
-                    disable_sliders=True, depth_test=False, wxyz=face_frame(axis, sign), position=position, visible=self.show_faces,
+                    disable_sliders=True, depth_test=False, wxyz=face_frame(axis, sign), position=position,
+                    visible=self.show_faces and self.handles_active,
                 )
                 self.face_handles[name] = handle
             else:
                 handle.position = position
                 handle.wxyz = face_frame(axis, sign)
-            handle.visible = self.show_faces
+            handle.visible = self.show_faces and self.handles_active
 
     # --- previews ------------------------------------------------------------------------
     def show_model(self, points_obj: np.ndarray | None, colors: np.ndarray | None = None) -> None:

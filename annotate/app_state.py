@@ -79,7 +79,11 @@ def default_position(sequence: Sequence, frame: int = 0, window: int = CENTRE_WI
     return np.array([0.0, 0.0, z])
 
 
-def new_document(sequence: Sequence, category: str = "other") -> Annotation:
+#: The category a new document starts with, until the annotator chooses one.
+NEW_DOCUMENT_CATEGORY = "other"
+
+
+def new_document(sequence: Sequence, category: str = NEW_DOCUMENT_CATEGORY) -> Annotation:
     """A fresh document: named after the folder, the category's typical box (sequences.typical_extents)."""
     annotation = Annotation(
         sequence=sequence.name,
@@ -103,7 +107,7 @@ def change_category(doc: Annotation, category: str) -> None:
 class AppState:
     """The shared session: the sequence, its document, the current frame and the edit history."""
 
-    def __init__(self, sequence: Sequence, document: str | Path | None = None, category: str = "other") -> None:
+    def __init__(self, sequence: Sequence, document: str | Path | None = None, category: str = NEW_DOCUMENT_CATEGORY) -> None:
         self.sequence = sequence
         self.path = annotation_path(sequence.root, document)
         self.lock = threading.RLock()

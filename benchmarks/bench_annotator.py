@@ -36,6 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from annotate import box_edits  # noqa: E402
+from annotate.app_state import NEW_DOCUMENT_CATEGORY  # noqa: E402
 from annotate.process import start as start_annotate  # noqa: E402
 from annotate.app_review import is_flagged  # noqa: E402
 from evaluate.geometry import raw_to_shapenet_pose  # noqa: E402
@@ -268,11 +269,12 @@ def annotate_like_a_person(page, root: Path, truth: Truth, url: str) -> dict:
     panel_left = panel["x"] - 20 if panel else canvas["x"] + canvas["width"]
     stages["open"] = time.perf_counter() - t0
 
-    # the category: the box takes its typical size
+    # the category: the box takes its typical size (a new document's own category needs no choosing: nothing changes)
     t = time.perf_counter()
-    before = person.text()
-    person.choose("Category", truth.category)
-    person.wait_for_change(before)
+    if (load_annotation(document).category if document.exists() else NEW_DOCUMENT_CATEGORY) != truth.category:
+        before = person.text()
+        person.choose("Category", truth.category)
+        person.wait_for_change(before)
     frames = choose_frames(truth, ids, camera, canvas, panel_left)
     adjustments, boxes = [], []
     current = 0

@@ -220,3 +220,24 @@ def test_a_clicked_box_stays_on_the_surface_while_it_turns_until_it_is_moved(app
     assert app.state.contact_point() is None
     app.moving.turn_box.value = "y+"
     np.testing.assert_allclose(load_annotation(app.state.path).frames["0000001"].position, moved, atol=1e-12)
+
+
+def test_a_borrowed_box_has_no_handles_to_catch_the_click_that_places_it(app):
+    """A frame without its own box shows the nearest frame's. Its gizmo and face arrows, drawn over the object (depth
+    test off), took the click meant to place the box there: the browser gave the pointer to a handle and the scene's
+    click never came (the annotator benchmark's clicks in frames whose borrowed box covered the object did nothing).
+    The borrowed box has no handles; the frame's own box has them, and the View toggle of the faces' arrows holds."""
+    scene = app.scene
+    app.state.set_frame(0)
+    app.commit_box(np.array([0.0, 0.0, 0.7]), np.array([0.0, 0.0, 0.0, 1.0]))
+    gizmo_parts = lambda: (scene.gizmo.disable_axes, scene.gizmo.disable_sliders, scene.gizmo.disable_rotations)  # noqa: E731
+    assert gizmo_parts() == (False, False, False) and all(h.visible for h in scene.face_handles.values())
+    app.state.set_frame(1)  # no box of its own: frame 1's is shown
+    assert not app.state.has_pose()
+    assert gizmo_parts() == (True, True, True) and not any(h.visible for h in scene.face_handles.values())
+    app.editing._on_face_box(SimpleNamespace(target=SimpleNamespace(value=True)))  # showing the arrows shows none here
+    assert not any(h.visible for h in scene.face_handles.values())
+    app.state.set_frame(0)
+    assert gizmo_parts() == (False, False, False) and all(h.visible for h in scene.face_handles.values())
+    app.editing._on_face_box(SimpleNamespace(target=SimpleNamespace(value=False)))
+    assert not any(h.visible for h in scene.face_handles.values()) and gizmo_parts() == (False, False, False)

@@ -41,9 +41,9 @@
    bowl's (tilt.py; by at most
    half the cone of normals it reads: a curved patch seen from one side walks the cone's mean to its edge);
    a box-like body (a camera) onto its faces (faces.py); a hinged one (a laptop) its y onto its base's faces and
-   its x square to its lid's (faces.hinge_rotation), each frame then turned onto its own base's and lid's faces, the median
-   over +-6 frames (tilt.py: the frames that see the base from above and those that see it from below share no
-   face, and kept their manual frames' rotations);
+   its x square to its lid's (faces.hinge_rotation), each frame then turned onto its own base's and lid's faces,
+   the median over +-6 frames (tilt.py: the frames that see the base from above and those that see it from below
+   share no face, and kept their manual frames' rotations);
 6. quality: figures and flags per frame (quality.py), with the final poses checked against the
    chains they came from and for jumps between frames (consistency.py), and, for objects without
    symmetry, the frames whose geometry leaves the spin about the axis free found (free_spin.py: a mug with
