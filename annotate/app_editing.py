@@ -159,9 +159,7 @@ class EditingPanel:
         self.app.state.set_extent(axis, value)
 
     def _on_face_box(self, event) -> None:
-        self.app.scene.show_faces = bool(event.target.value)
-        for handle in self.app.scene.face_handles.values():
-            handle.visible = self.app.scene.show_faces and self.app.scene.handles_active
+        self.app.scene.set_face_handles(bool(event.target.value))
 
     def _on_gizmo(self, event) -> None:
         """Commit the gizmo's pose when a drag ends (one undo step per drag)."""

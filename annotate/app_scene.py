@@ -121,6 +121,11 @@ class SceneView:
         the box on it (the browser's pointer goes to the handle, and the scene's click never comes)."""
         self.handles_active = bool(active)
         self.gizmo.disable_axes = self.gizmo.disable_sliders = self.gizmo.disable_rotations = not active
+        self.set_face_handles(self.show_faces)
+
+    def set_face_handles(self, show: bool) -> None:
+        """Show the faces' arrows (the View toggle), where the box has handles at all (:meth:`set_handles`)."""
+        self.show_faces = bool(show)
         for handle in self.face_handles.values():
             handle.visible = self.show_faces and self.handles_active
 
@@ -165,7 +170,6 @@ class SceneView:
             else:
                 handle.position = position
                 handle.wxyz = face_frame(axis, sign)
-            handle.visible = self.show_faces and self.handles_active
 
     # --- previews ------------------------------------------------------------------------
     def show_model(self, points_obj: np.ndarray | None, colors: np.ndarray | None = None) -> None:

@@ -67,9 +67,8 @@ class SurfaceLabels:
     faces: dict[str, str]  # box face -> "measured" | "support" | "inferred" | "unseen"
 
     def observed_faces(self, faces: np.ndarray) -> np.ndarray:
-        """(F,) bool: the mesh's ``faces`` (F, 3 vertex indices) labelled observed (one observed vertex makes the face
-        observed, as the shares count it)."""
-        return self.labels[np.asarray(faces)].min(axis=1) == OBSERVED
+        """(F,) bool: the mesh's ``faces`` (F, 3 vertex indices) labelled observed (:func:`face_labels`)."""
+        return face_labels(self.labels, faces) == OBSERVED
 
     def unmeasured_faces(self) -> list[tuple[str, str]]:
         """(face, the turn that would show it) for every box face no measurement bounds."""
@@ -78,6 +77,12 @@ class SurfaceLabels:
     def report(self) -> dict:
         return {"surface_shares": {k: round(v, 4) for k, v in self.shares.items()}, "box_faces": dict(self.faces),
                 "to_show": [f"{face}: {advice}" for face, advice in self.unmeasured_faces()]}
+
+
+def face_labels(labels: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) label per face of ``faces`` (F, 3 vertex indices) from the vertices' ``labels`` (V,): a face takes its
+    vertices' most trusted label, observed over inferred over unseen (the shares and the benchmark count faces so)."""
+    return np.asarray(labels)[np.asarray(faces)].min(axis=1)
 
 
 def _lookup(zone: np.ndarray, grid: VoxelGrid, points: np.ndarray) -> np.ndarray:
@@ -166,11 +171,10 @@ def label_surface(mesh: trimesh.Trimesh, grid: VoxelGrid, frames, camera, filled
         zone = ndimage.binary_dilation(filled, ndimage.generate_binary_structure(3, 1), iterations=LABEL_REACH)
         labels[_lookup(zone, grid, points)] = INFERRED
     labels[observed_points(points, np.asarray(mesh.faces), frames, camera)] = OBSERVED
-    # a face takes its vertices' most trusted label: observed over inferred over unseen
-    face_labels = labels[np.asarray(mesh.faces)].min(axis=1)
+    per_face = face_labels(labels, mesh.faces)
     area = np.asarray(mesh.area_faces)
     total = max(float(area.sum()), 1e-12)
-    shares = {name: float(area[face_labels == k].sum() / total) for k, name in enumerate(LABEL_NAMES)}
+    shares = {name: float(area[per_face == k].sum() / total) for k, name in enumerate(LABEL_NAMES)}
     vertices = np.asarray(mesh.vertices)
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     reach = LABEL_REACH * grid.voxel_size
