@@ -1,17 +1,19 @@
 """What a refine did, in words: whether its result may replace the box, and why not.
 
 Both tracking engines (annotate.engines) return a ``refined`` FramePose with their figures. The graph engine leaves a
-box whose points do not fit where it was, flagged with its reason; the chains engine returns wherever its
-registration ended, with a fitness. The panel judges both alike from the figures: a refine fails where the box holds
-too few points, or too small a share of them lies on the object the other posed frames show (fitness below the
-engine's ``min_fitness``); then the box stays as it was and the annotator reads why and what to do. A refine that
-succeeds but is flagged for another reason replaces the box, flagged.
+box whose result the frame does not confirm where it was, flagged with its reason; the chains engine returns wherever
+its registration ended. The panel judges both alike from the figures: a refine fails where the box holds too few
+points, or the frame's depth does not confirm the object the other posed frames show where the result puts it
+(annotate.depth_agreement: the camera sees through too much of it; a result without those figures: too small a share
+of the box's points lies on that object, the engine's ``min_fitness``); then the box stays as it was and the annotator
+reads why and what to do. A refine that succeeds but is flagged for another reason replaces the box, flagged.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from annotate.depth_agreement import agreement_reason
 from sequences.annotation import FramePose
 
 #: What to do when a refine fails: the box must hold the object for its points to fit it.
@@ -54,8 +56,11 @@ def judge_refine(result: FramePose, config=None) -> RefineVerdict:
     points = extra.get("points")
     if isinstance(points, (int, float)) and points < min_points:
         return RefineVerdict(False, f"only {int(points)} points of the frame lie in the box: {ADVICE}")
+    disagreement = agreement_reason(extra)
+    if disagreement:
+        return RefineVerdict(False, f"{disagreement}: {ADVICE}")
     fitness = extra.get("fitness")
-    if isinstance(fitness, (int, float)) and fitness < min_fitness:
+    if "depth_votes" not in extra and isinstance(fitness, (int, float)) and fitness < min_fitness:
         return RefineVerdict(False, f"only {fitness:.0%} of the box's points lie on the object the other posed frames show "
                                     f"(at least {min_fitness:.0%} needed): {ADVICE}")
     if extra.get("flagged"):

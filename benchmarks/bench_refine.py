@@ -8,8 +8,9 @@ then in ``--trials`` other frames the true box turned about a random axis by up 
 direction by up to 2 cm (both uniform), and refined as the page does (annotate.app_refine: the engine's refine_frame
 with the panel's configuration; a result the panel declines leaves the box where it was). Per sequence, engine and
 setting: the share converged (within 2 deg and 5 mm of the truth; symmetry y ignores the turn about y), the share the
-panel declined with a reason, the share taken but not converged, the median errors before and after, and the median
-refine time (ms, this process, Open3D on one thread).
+panel declined with a reason, the share taken but not converged (and of all, the share taken, not converged and further
+from the truth than the start in rotation or centre), the median errors before and after, and the median refine time
+(ms, this process, Open3D on one thread).
 """
 
 from __future__ import annotations
@@ -92,7 +93,9 @@ def bench(root: Path, engine_name: str, setting: str, trials: int, seed: int = 0
     after = np.array([r[2] for r in rows])
     converged = (after[:, 0] <= CONVERGED_DEG) & (after[:, 1] <= CONVERGED_M)
     before = np.array([r[1] for r in rows])
+    worse = ok & ~converged & ((after[:, 0] > before[:, 0]) | (after[:, 1] > before[:, 1]))
     return {"n": len(rows), "converged": float(converged.mean()), "declined": float((~ok).mean()), "taken_wrong": float((ok & ~converged).mean()),
+            "taken_worse": float(worse.mean()),
             "before_deg": float(np.median(before[:, 0])), "before_mm": float(np.median(before[:, 1]) * 1000),
             "after_deg": float(np.median(after[:, 0])), "after_mm": float(np.median(after[:, 1]) * 1000),
             "ms": float(np.median([r[3] for r in rows]) * 1000), "converged_flags": converged.tolist()}
@@ -132,7 +135,9 @@ def main() -> None:
         flags = [c for r in rows for c in r["converged_flags"]]
         declined = np.average([r["declined"] for r in rows], weights=[r["n"] for r in rows])
         wrong = np.average([r["taken_wrong"] for r in rows], weights=[r["n"] for r in rows])
-        print(f"  {engine:7s} {setting:8s} converged {np.mean(flags):.0%} of {len(flags)}, declined {declined:.0%}, taken wrong {wrong:.0%}, "
+        worse = np.average([r["taken_worse"] for r in rows], weights=[r["n"] for r in rows])
+        print(f"  {engine:7s} {setting:8s} converged {np.mean(flags):.0%} of {len(flags)}, declined {declined:.0%}, taken wrong {wrong:.0%} "
+              f"(worse than the start in rotation or centre: {worse:.0%}), "
               f"median refine {np.median([r['ms'] for r in rows]):.0f} ms (median of the rows' medians)")
 
 

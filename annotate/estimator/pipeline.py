@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotate.depth_agreement import AGREEMENT_TOLERANCE, agreement_figures, agreement_reason
 from annotate.engines import anchor_correction, anchor_frames, anchored_pose
 from sequences.annotation import Annotation, FramePose
 from sequences.reader import Sequence
@@ -35,7 +36,7 @@ from annotate.workers import ordered_map, resolve
 
 from .config import EstimatorConfig
 from .graph import Factor, Solution, sigmas, solve
-from .model import fuse, fused_model, revolution_axis, revolved
+from .model import fuse, fused_model, revolution_axis, revolved, seen_through
 from .observations import Crop, FrameCrops
 from .registration import Model, Registration, register, retract
 from .review import flag_weak_runs, frame_figures
@@ -377,12 +378,15 @@ def refine_frame(sequence: Sequence, annotation: Annotation, frame_id: str, conf
     parts = {f: setup.crop(f, at[f], thin=False) for f in sources}
     model = fused_model(setup.crops, at, {f: (c.points, c.normals) for f, c in parts.items()}, config.free_space_tolerance, config.max_free_share)
     result = register(setup.crop(frame_id, at_depth[frame_id]), model, at_depth[frame_id], config)
-    figures = frame_figures(result.pose, result, None, setup.symmetric, config)
-    if not result.ok or result.fitness < config.min_fitness:
+    agreement = None
+    if result.ok and others:  # whether the frame's depth confirms the model of the other frames where the result puts it
+        through, seen = seen_through(model, setup.crops, {frame_id: result.pose}, AGREEMENT_TOLERANCE)
+        agreement = agreement_figures(seen.sum(), through.sum())
+    figures = frame_figures(result.pose, result, None, setup.symmetric, config, agreement)
+    reason = "no depth of the object in the box" if not result.ok else agreement_reason(agreement or {})
+    if reason:
         figures["flagged"] = True
-        share = 0.0 if not result.ok else result.fitness
-        figures["flag_reason"] = (f"only {share:.0%} of the points in the box fit the object seen in the other frames: "
-                                  "move the box onto the object and refine again")
+        figures["flag_reason"] = f"{reason}: move the box onto the object and refine again"
         return FramePose.from_matrix(start, "refined", figures)
     to_colour = np.linalg.inv(at_depth[frame_id]) @ start  # the motion from the depth instant to the colour one
     return FramePose.from_matrix(result.pose @ to_colour, "refined", figures)

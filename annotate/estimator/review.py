@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from annotate.depth_agreement import agreement_reason
 from evaluate.metrics.pose_errors import rotation_error
 
 from .config import EstimatorConfig
@@ -50,15 +51,20 @@ def weak_turn(information: np.ndarray, symmetric: bool) -> float:
     return float(np.sqrt(np.median(values) / values[0]))
 
 
-def frame_figures(pose: np.ndarray, registration: Registration | None, covariance: np.ndarray | None, symmetric: bool, config: EstimatorConfig) -> dict:
-    """The figures of a frame with final ``pose``, and ``flagged``/``flag_reason`` where they pass the limits."""
-    figures: dict = {}
+def frame_figures(pose: np.ndarray, registration: Registration | None, covariance: np.ndarray | None, symmetric: bool, config: EstimatorConfig,
+                  agreement: dict | None = None) -> dict:
+    """The figures of a frame with final ``pose``, and ``flagged``/``flag_reason`` where they pass the limits.
+    ``agreement`` (annotate.depth_agreement.agreement_figures), where given, judges the fit instead of the fitness."""
+    figures: dict = dict(agreement or {})
     reasons: list[str] = []
     if registration is not None:
         figures["fitness"] = round(float(registration.fitness), 3)
         figures["rmse_mm"] = round(1000 * float(registration.rmse), 2) if np.isfinite(registration.rmse) else None
         if not registration.ok:
             reasons.append("no depth of the object in the box: it is hidden or out of view, and the motion alone places it")
+        elif agreement is not None:
+            if agreement_reason(agreement):
+                reasons.append(agreement_reason(agreement))
         elif registration.fitness < config.min_fitness:
             reasons.append(f"only {registration.fitness:.0%} of the points in the box fit the object: a hand or another "
                            "surface covers it, or the box is off it")

@@ -79,6 +79,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from annotate.depth_agreement import AGREEMENT_TOLERANCE, agreement_figures
 from annotate.engines import anchor_correction, anchor_frames, anchored_pose, kept_by_a_person
 from annotate.estimator.model import is_revolution
 from sequences.annotation import Annotation, FramePose
@@ -88,6 +89,7 @@ from sequences.timing import at_colour_time, at_depth_time
 from .config import TrackingConfig, scaled_to
 from .consistency import chain_departures, flagged_gaps, flags_grown, free_spin_runs, rotation_jumps
 from .frames import FrameStore
+from .freespace import free_space_votes
 from .propagate import run_chain
 from .quality import CHAIN_WORDS, document_figures, in_box_share, rotation_angle_deg
 from .registration import open3d_threads
@@ -649,6 +651,9 @@ def _refine_one(sequence: Sequence, annotation: Annotation, frame_id: str, confi
         hits = 1
     result = tracker.register(frame_id, at_depth[frame_id], model, hits)
     figures = dict(result.figures)
+    if others:  # whether the frame's depth confirms the model of the other frames where the result puts it
+        through, seen = free_space_votes(model.points(hits)[0], {frame_id: result.pose}, tracker.store, AGREEMENT_TOLERANCE)
+        figures.update(agreement_figures(seen.sum(), through.sum()))
     figures = document_figures(figures, config)
     to_colour = np.linalg.inv(at_depth[frame_id]) @ start  # the motion from the depth instant to the colour one
     return FramePose.from_matrix(result.pose @ to_colour, "refined", figures)

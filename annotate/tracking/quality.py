@@ -3,6 +3,8 @@
 Figures (stored as extra keys on each tracked frame of the document):
 - ``fitness``: share of the frame's cropped points within the inlier distance of the model;
 - ``inlier_rmse``: RMS distance of those inliers, metres;
+- ``depth_agreement`` / ``depth_votes`` (a refined frame): whether the frame's depth confirms the model of the other
+  posed frames where the result puts it (annotate.depth_agreement); where present it judges the fit, not the fitness;
 - ``in_box``: share of the points near the box (crop with margin) that lie inside the box;
 - ``chain_disagreement_deg`` / ``chain_disagreement_m``: how far apart the forward and the
   backward chain put the frame between two manual frames; outside their span, how far a second
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from annotate.depth_agreement import agreement_reason
 from evaluate.geometry import untransform
 
 
@@ -72,7 +75,10 @@ def pose_reasons(figures: dict, config) -> list[str]:
         reasons.append(str(figures["error"]))
     if figures.get("points", config.min_points) < config.min_points:
         reasons.append(f"only {figures['points']} points in the box")
-    if "fitness" in figures and figures["fitness"] < config.min_fitness:
+    disagreement = agreement_reason(figures)  # where asked, the depth's agreement judges the fit, not the fitness
+    if disagreement:
+        reasons.append(disagreement)
+    elif "depth_votes" not in figures and "fitness" in figures and figures["fitness"] < config.min_fitness:
         reasons.append(f"fitness {figures['fitness']:.2f} < {config.min_fitness}")
     if "inlier_rmse" in figures and not figures["inlier_rmse"] <= config.max_inlier_rmse:
         reasons.append(f"inlier RMSE {figures['inlier_rmse'] * 1000:.1f} mm > {config.max_inlier_rmse * 1000:.1f} mm")
