@@ -15,6 +15,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from annotate.depth_agreement import depth_votes
+
 from .observations import FrameCrops
 from .registration import Model
 
@@ -68,13 +70,9 @@ def seen_through(model: Model, crops: FrameCrops, poses: dict[str, np.ndarray], 
     for frame_id, pose in poses.items():
         depth = crops.depth(frame_id)
         camera = model.points @ pose[:3, :3].T + pose[:3, 3]
-        rows, cols, z = crops.project(camera)
-        inside = (rows >= 0) & (rows < depth.shape[0]) & (cols >= 0) & (cols < depth.shape[1]) & (z > 0)
-        measured = np.zeros(len(model), dtype=np.float32)
-        measured[inside] = depth[rows[inside], cols[inside]]
-        valid = inside & (measured > 0)
-        free += valid & (measured > z + tolerance)
-        seen += valid & (np.abs(measured - z) <= tolerance)
+        frame_free, frame_seen = depth_votes(depth, *crops.project(camera), tolerance)
+        free += frame_free
+        seen += frame_seen
     return free, seen
 
 

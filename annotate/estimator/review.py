@@ -63,8 +63,8 @@ def frame_figures(pose: np.ndarray, registration: Registration | None, covarianc
         if not registration.ok:
             reasons.append("no depth of the object in the box: it is hidden or out of view, and the motion alone places it")
         elif agreement is not None:
-            if agreement_reason(agreement):
-                reasons.append(agreement_reason(agreement))
+            if disagreement := agreement_reason(agreement):
+                reasons.append(disagreement)
         elif registration.fitness < config.min_fitness:
             reasons.append(f"only {registration.fitness:.0%} of the points in the box fit the object: a hand or another "
                            "surface covers it, or the box is off it")

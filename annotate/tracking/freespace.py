@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from annotate.depth_agreement import depth_votes
+
 from .frames import FrameStore
 
 
@@ -41,7 +43,6 @@ def free_space_votes(
         depth, _ = store.image(frame_id)
         if frame_id in store.errors:
             continue
-        h, w = depth.shape
         p = points_obj @ pose[:3, :3].T + pose[:3, 3]
         z = p[:, 2]
         front = z > 1e-3
@@ -49,10 +50,7 @@ def free_space_votes(
         v = np.full(len(p), -1, dtype=np.int64)
         u[front] = np.round((camera.fx * p[front, 0] / z[front] + camera.cx) / s).astype(np.int64)
         v[front] = np.round((camera.fy * p[front, 1] / z[front] + camera.cy) / s).astype(np.int64)
-        inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        d = np.zeros(len(p))
-        d[inside] = depth[v[inside], u[inside]]
-        valid = inside & (d > 0)
-        through += valid & (d > z + tolerance)
-        seen += valid & (np.abs(d - z) <= tolerance)
+        frame_through, frame_seen = depth_votes(depth, v, u, z, tolerance)
+        through += frame_through
+        seen += frame_seen
     return through, seen
